@@ -1,0 +1,1 @@
+"""Processes of the twin: thin shells that subscribe, call twin_core, and publish."""

@@ -1,0 +1,1 @@
+"""Pure computation of the powder-line twin: no networking, no global state."""
