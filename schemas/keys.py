@@ -1,0 +1,197 @@
+"""Key expressions of the bus: ``twin/<line>/<unit>/<id>/<signal>`` (or ``twin/<line>/<unit>/<signal>``).
+
+Examples::
+
+    twin/line1/feeder/api/flow            FeederFlow
+    twin/line1/pat/nir1/concentration     MeasuredConcentration
+    twin/line1/blender/outlet/predicted   PredictedConcentration
+    twin/line1/feeder/api/event           Event
+    twin/line1/rtd/estimate               RtdEstimate        (no id)
+    twin/line1/oos/alert                  OosAlert           (no id)
+    twin/line1/divert/command             DivertCommand      (no id)
+    twin/line1/dem/job7/request|progress|result
+    twin/line1/service/recorder/health    ServiceHealth
+    twin/line1/service/recorder/alive     liveliness token of a running service
+
+Keys have no leading ``/``. Each segment is a non-empty token of ``[A-Za-z0-9_.-]``
+(no wildcards), so a concrete key never matches more than itself.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import pkgutil
+import re
+from dataclasses import dataclass
+
+from schemas.base import IDENT_PATTERN, Message
+
+ROOT = "twin"
+_SEGMENT = re.compile(IDENT_PATTERN)
+log = logging.getLogger(__name__)
+
+
+def _check_segment(name: str, value: str) -> str:
+    if not isinstance(value, str) or not _SEGMENT.match(value):
+        raise ValueError(
+            f"{name} must be a non-empty token of [A-Za-z0-9_.-] (no '/', wildcards or spaces), "
+            f"got {value!r}"
+        )
+    return value
+
+
+@dataclass(frozen=True)
+class Key:
+    """A parsed key expression. ``id`` is None for the 4-segment form."""
+
+    line: str
+    unit: str
+    signal: str
+    id: str | None = None
+
+    def __post_init__(self) -> None:
+        _check_segment("line", self.line)
+        _check_segment("unit", self.unit)
+        _check_segment("signal", self.signal)
+        if self.id is not None:
+            _check_segment("id", self.id)
+
+    def __str__(self) -> str:
+        if self.id is None:
+            return f"{ROOT}/{self.line}/{self.unit}/{self.signal}"
+        return f"{ROOT}/{self.line}/{self.unit}/{self.id}/{self.signal}"
+
+
+def key(line: str, unit: str, signal: str, id: str | None = None) -> str:
+    """Build a key expression, e.g. ``key("line1", "feeder", "flow", id="api")``
+    -> ``"twin/line1/feeder/api/flow"``. Raises ValueError naming a bad segment."""
+    return str(Key(line=line, unit=unit, signal=signal, id=id))
+
+
+def parse_key(expr: str) -> Key:
+    """Parse a concrete key expression; raises ValueError if it is not of the twin's form."""
+    if not isinstance(expr, str):
+        raise ValueError(f"key must be a string, got {expr!r}")
+    parts = expr.split("/")
+    if parts[0] != ROOT:
+        raise ValueError(f"key must start with '{ROOT}/', got {expr!r}")
+    if len(parts) == 4:
+        return Key(line=parts[1], unit=parts[2], signal=parts[3])
+    if len(parts) == 5:
+        return Key(line=parts[1], unit=parts[2], id=parts[3], signal=parts[4])
+    raise ValueError(
+        f"key must have the form twin/<line>/<unit>/[<id>/]<signal>, got {expr!r} "
+        f"({len(parts)} segments)"
+    )
+
+
+# Convenience builders for the standard keys.
+def feeder_flow(line: str, feeder_id: str) -> str:
+    return key(line, "feeder", "flow", feeder_id)
+
+
+def measured_concentration(line: str, sensor: str) -> str:
+    return key(line, "pat", "concentration", sensor)
+
+
+def predicted_concentration(line: str, location: str = "outlet") -> str:
+    return key(line, "blender", "predicted", location)
+
+
+def event(line: str, unit: str, id: str) -> str:
+    return key(line, unit, "event", id)
+
+
+def rtd_estimate(line: str) -> str:
+    return key(line, "rtd", "estimate")
+
+
+def oos_alert(line: str) -> str:
+    return key(line, "oos", "alert")
+
+
+def divert_command(line: str) -> str:
+    return key(line, "divert", "command")
+
+
+def dem_job(line: str, job_id: str, signal: str) -> str:
+    if signal not in ("request", "progress", "result"):
+        raise ValueError(f"signal must be 'request', 'progress' or 'result', got {signal!r}")
+    return key(line, "dem", signal, job_id)
+
+
+def service_health(line: str, service: str) -> str:
+    return key(line, "service", "health", service)
+
+
+def service_alive(line: str, service: str) -> str:
+    return key(line, "service", "alive", service)
+
+
+# ---------------------------------------------------------------------------------------------
+# signal -> model registry
+
+_REGISTRY: dict[str, type[Message]] = {}
+_discovered = False
+
+
+def register_signal(signal: str, model: type[Message]) -> None:
+    """Map a signal name (last key segment) to its message model. Overrides earlier entries."""
+    _check_segment("signal", signal)
+    _REGISTRY[signal] = model
+
+
+def _all_subclasses(cls: type) -> list[type]:
+    out = []
+    for sub in cls.__subclasses__():
+        out.append(sub)
+        out.extend(_all_subclasses(sub))
+    return out
+
+
+def discover_schema_modules() -> list[str]:
+    """Import every module of the ``schemas`` package (pkgutil); return the names imported.
+
+    A module that fails to import is logged and skipped (it cannot take the bus down).
+    """
+    import schemas
+
+    names = []
+    for info in pkgutil.iter_modules(schemas.__path__, prefix="schemas."):
+        try:
+            importlib.import_module(info.name)
+        except Exception as exc:  # noqa: BLE001 - another area's module must not break ours
+            log.warning("cannot import %s: %s", info.name, exc)
+            continue
+        names.append(info.name)
+    return names
+
+
+def _refresh() -> None:
+    global _discovered
+    import schemas.messages  # noqa: F401 - defines the standard messages
+
+    if not _discovered:
+        discover_schema_modules()
+        _discovered = True
+    for model in _all_subclasses(Message):
+        signal = getattr(model, "SIGNAL", None)
+        if signal and signal not in _REGISTRY:
+            _REGISTRY[signal] = model
+
+
+def model_for_signal(signal: str) -> type[Message] | None:
+    """Message model registered for a signal name, or None."""
+    if signal not in _REGISTRY:
+        _refresh()
+    return _REGISTRY.get(signal)
+
+
+def model_for_key(expr: str) -> type[Message] | None:
+    """Message model of a concrete key expression (by its signal), or None if unknown."""
+    try:
+        signal = parse_key(expr).signal
+    except ValueError:
+        return None
+    return model_for_signal(signal)
