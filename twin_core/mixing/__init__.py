@@ -1,0 +1,21 @@
+"""Mixing indices and T95 mixing times (seed chapter 4)."""
+
+from twin_core.mixing.grid import GridSpec, cell_counts, occupied_cells
+from twin_core.mixing.properties import index_properties, select_indices
+from twin_core.mixing.series import (
+    DIRECTION,
+    INDEX_NAMES,
+    Frame,
+    MixingConfig,
+    compute_indices,
+    mixed_reference,
+    mixing_progress,
+    shuffled_frame,
+)
+from twin_core.mixing.t95 import T95Fit, fit_t95, t95_time
+
+__all__ = [
+    "DIRECTION", "INDEX_NAMES", "Frame", "GridSpec", "MixingConfig", "T95Fit", "cell_counts",
+    "compute_indices", "fit_t95", "index_properties", "mixed_reference", "mixing_progress",
+    "occupied_cells", "select_indices", "shuffled_frame", "t95_time",
+]  # fmt: skip
