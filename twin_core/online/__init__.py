@@ -1,0 +1,28 @@
+"""Streaming, incremental computations for the live twin (no networking, no global state).
+
+- :mod:`~twin_core.online.convolution`: streaming RTD convolution (outlet prediction).
+- :mod:`~twin_core.online.alerts`: OOS episode tracking with hysteresis and stable ids.
+- :mod:`~twin_core.online.funnel`: funnel-based early flag of feeder disturbances.
+- :mod:`~twin_core.online.tracer`: tracer-pulse detection in a PAT signal.
+- :mod:`~twin_core.online.inlet`: alignment of per-feeder flows into inlet composition.
+"""
+
+from twin_core.online.alerts import Episode, EpisodeEvent, HysteresisTracker, episode_id
+from twin_core.online.convolution import StreamingConvolver
+from twin_core.online.funnel import FlagEvent, FunnelFlagger, window_gain
+from twin_core.online.inlet import InletAligner
+from twin_core.online.tracer import TracerPulseDetector, TracerSegment
+
+__all__ = [
+    "Episode",
+    "EpisodeEvent",
+    "FlagEvent",
+    "FunnelFlagger",
+    "HysteresisTracker",
+    "InletAligner",
+    "StreamingConvolver",
+    "TracerPulseDetector",
+    "TracerSegment",
+    "episode_id",
+    "window_gain",
+]
