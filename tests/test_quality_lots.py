@@ -1,0 +1,49 @@
+"""Lot boundaries and diversion windows."""
+
+import numpy as np
+import pytest
+
+from twin_core.quality.lots import diversion_window, lot_boundaries, quantile_time
+from twin_core.rtd.models import axial_dispersion_open, cstr
+
+
+def test_table_6_2_lot_boundaries():
+    """Table 6.2 AD parameters (tau_d 11.92 s, tau 16.37 s, Pe 7.67) give 0.5 % / 99.5 %
+    boundaries of 17.3 s / 72.2 s for the noise-free model (SEED_NOTES)."""
+    t = np.linspace(0, 300, 3001)
+    lo, hi = lot_boundaries(t, axial_dispersion_open(t, 11.92, 16.37, 7.67))
+    assert lo == pytest.approx(17.3, abs=0.05)
+    assert hi == pytest.approx(72.2, abs=0.05)
+
+
+def test_quantiles_of_cstr_analytic():
+    """CSTR quantile t_q = -tau ln(1 - q) (Levenspiel 1999 Eq. 11.12), also for an unnormalized
+    concentration profile (scale-invariance of Eq. 3)."""
+    t = np.linspace(0, 400, 40001)
+    assert quantile_time(t, 7.0 * cstr(t, 10.0), 0.5) == pytest.approx(10 * np.log(2), abs=1e-3)
+    lo, hi = lot_boundaries(t, cstr(t, 10.0), 0.01, 0.99)
+    assert lo == pytest.approx(-10 * np.log(0.99), abs=1e-3)
+    assert hi == pytest.approx(-10 * np.log(0.01), abs=1e-3)
+
+
+def test_diversion_window_shifts_by_boundaries():
+    """Diversion window = [t_start + t_lo, t_end + t_hi] (Engisch & Muzzio 2016)."""
+    t = np.linspace(0, 300, 3001)
+    e = axial_dispersion_open(t, 11.92, 16.37, 7.67)
+    lo, hi = lot_boundaries(t, e)
+    s, f = diversion_window(100.0, 130.0, t, e)
+    assert (s, f) == (pytest.approx(100 + lo), pytest.approx(130 + hi))
+
+
+def test_lots_errors():
+    """Bad levels, zero area and reversed windows raise ValueError naming the field."""
+    t = np.linspace(0, 10, 11)
+    e = np.ones_like(t)
+    with pytest.raises(ValueError, match="lower must be in"):
+        lot_boundaries(t, e, lower=0.0)
+    with pytest.raises(ValueError, match="lower must be < upper"):
+        lot_boundaries(t, e, lower=0.9, upper=0.1)
+    with pytest.raises(ValueError, match="positive area"):
+        lot_boundaries(t, np.zeros_like(t))
+    with pytest.raises(ValueError, match="t_end must be >= t_start"):
+        diversion_window(5.0, 1.0, t, e)
