@@ -63,5 +63,5 @@ def nearest_neighbours(positions: np.ndarray, k: int, box: np.ndarray | None = N
     if k < 1 or k >= len(positions):
         raise ValueError(f"k must be in [1, N-1], got {k} for N={len(positions)}")
     tree = _tree(positions, box)
-    _, idx = tree.query(tree.data, k=k + 1)
+    _, idx = tree.query(tree.data, k=k + 1, workers=-1)
     return idx[:, 1:]
