@@ -1,0 +1,1 @@
+"""Close the loop: residuals, candidate effects, identification, before/after reports."""
