@@ -1,0 +1,65 @@
+"""NIR sensor noise of the seed (chapter 6.1.3.2): white, pink (1/f), proportional, outliers.
+
+measured(t) = signal(t) + baseline_offset + white + pink + proportional_rel * |signal| * N(0, 1)
+              + outliers
+
+with white ~ N(0, white_sd^2) i.i.d., pink a 1/f process (power spectral density ~ 1/f, made
+by shaping the spectrum of white noise, Timmer & Koenig 1995, A&A 300:707) rescaled to
+standard deviation ``pink_sd``, and outliers: with probability ``outlier_prob`` per sample a
+Laplace-distributed spike of scale ``outlier_sd / sqrt(2)`` (standard deviation outlier_sd).
+The seed reports baseline statistics beyond t = 120 s of mean -0.03 to -0.074 and standard
+deviation 0.125 to 0.132 % w/w (SEED_NOTES); the defaults of ``NIRNoise`` give -0.05 / 0.122.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from twin_core.plant.config import NIRNoise
+
+
+def pink_noise(n: int, rng: np.random.Generator, alpha: float = 1.0) -> np.ndarray:
+    """Zero-mean, unit-variance noise with power spectral density ~ 1/f^alpha.
+
+    Spectral shaping (Timmer & Koenig 1995): complex Gaussian Fourier coefficients with
+    amplitude f^(-alpha/2) for f > 0, zero mean (DC = 0), inverse real FFT, standardised.
+    """
+    if n < 0:
+        raise ValueError(f"n must be >= 0, got {n}")
+    if n < 2:
+        return np.zeros(n)
+    f = np.fft.rfftfreq(n)
+    amp = np.zeros_like(f)
+    amp[1:] = f[1:] ** (-alpha / 2.0)
+    coef = amp * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
+    if n % 2 == 0:
+        coef[-1] = coef[-1].real * np.sqrt(2.0)
+    x = np.fft.irfft(coef, n)
+    sd = x.std()
+    return (x - x.mean()) / sd if sd > 0 else x
+
+
+def add_nir_noise(
+    signal: np.ndarray, noise: NIRNoise, seed: int | np.random.Generator | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Measured NIR reading from the noise-free sensor signal (% w/w).
+
+    Returns ``(measured, outlier_mask)``. NaN samples of ``signal`` stay NaN.
+    """
+    rng = np.random.default_rng(seed)
+    s = np.asarray(signal, dtype=float)
+    n = s.size
+    y = s + noise.baseline_offset
+    y = y + noise.white_sd * rng.standard_normal(n)
+    y = y + noise.pink_sd * pink_noise(n, rng)
+    y = y + noise.proportional_rel * np.abs(np.nan_to_num(s)) * rng.standard_normal(n)
+    outliers = rng.random(n) < noise.outlier_prob
+    if outliers.any():
+        y[outliers] += rng.laplace(0.0, noise.outlier_sd / np.sqrt(2.0), int(outliers.sum()))
+    return y, outliers
+
+
+def noise_sd(signal: np.ndarray, noise: NIRNoise) -> np.ndarray:
+    """Standard deviation of the non-outlier noise at each sample (for weighting), % w/w."""
+    s = np.abs(np.nan_to_num(np.asarray(signal, dtype=float)))
+    return np.sqrt(noise.white_sd**2 + noise.pink_sd**2 + (noise.proportional_rel * s) ** 2)
