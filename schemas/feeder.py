@@ -13,9 +13,10 @@ from __future__ import annotations
 import math
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-__all__ = ["FeederConfig"]
+__all__ = ["FeederConfig", "loop_spectral_radius"]
 
 #: g/rev * rev/min -> kg/h
 G_PER_MIN_TO_KG_PER_H = 60.0 / 1000.0
@@ -24,8 +25,10 @@ G_PER_MIN_TO_KG_PER_H = 60.0 / 1000.0
 class FeederConfig(BaseModel):
     """Loss-in-weight feeder: feed factor, hopper and refill, PID controller, noise.
 
-    Controller units: the PID acts on the flow error in kg/h and outputs screw speed in rpm,
-    so ``kp`` is rpm/(kg/h), ``ki`` rpm/(kg/h s) and ``kd`` rpm s/(kg/h).
+    Controller: the PID acts on the flow error (kg/h) and outputs a flow demand (kg/h) that is
+    divided by the feed factor FF(W) at the measured weight to give the screw speed, so ``kp``
+    is dimensionless, ``ki`` in 1/s and ``kd`` in s. The gains are checked for closed-loop
+    stability of the linearised loop (:func:`loop_spectral_radius`).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -61,14 +64,14 @@ class FeederConfig(BaseModel):
     refill_enabled: bool = True
 
     # screw drive
-    screw_min_rpm: float = Field(1.0, ge=0)
+    screw_min_rpm: float = Field(0.0, ge=0)
     screw_max_rpm: float = Field(150.0, gt=0)
     motor_tau_s: float = Field(0.5, ge=0, description="first-order lag of the screw drive")
 
     # controller and flow estimation from the load cell
-    kp: float = Field(1.0, ge=0, description="proportional gain, rpm/(kg/h)")
-    ki: float = Field(0.3, ge=0, description="integral gain, rpm/(kg/h s)")
-    kd: float = Field(0.0, ge=0, description="derivative gain, rpm s/(kg/h)")
+    kp: float = Field(0.3, ge=0, description="proportional gain (flow demand per flow error)")
+    ki: float = Field(0.1, ge=0, description="integral gain (1/s)")
+    kd: float = Field(0.0, ge=0, description="derivative gain (s)")
     control_period_s: float = Field(0.1, gt=0, description="controller update period")
     flow_window_s: float = Field(
         5.0, gt=0, description="load-cell regression window for the flow estimate"
@@ -137,4 +140,53 @@ class FeederConfig(BaseModel):
                     f"setpoint_kg_h {top} is unreachable: screw_max_rpm {self.screw_max_rpm} x "
                     f"FF({w_low} kg) = {ff_low:.4g} g/rev gives at most {max_flow:.4g} kg/h"
                 )
+        if self.mode == "gravimetric":
+            rho = loop_spectral_radius(self)
+            if rho >= 1.0:
+                raise ValueError(
+                    f"PID gains kp={self.kp}, ki={self.ki}, kd={self.kd} make the flow loop "
+                    f"unstable (spectral radius {rho:.4f} >= 1 with control_period_s="
+                    f"{self.control_period_s}, flow_window_s={self.flow_window_s}, "
+                    f"flow_filter_tau_s={self.flow_filter_tau_s}, motor_tau_s={self.motor_tau_s}); "
+                    "lower the gains or shorten the flow window"
+                )
         return self
+
+
+def loop_spectral_radius(cfg: FeederConfig) -> float:
+    """Spectral radius of the linearised gravimetric loop, sampled at the control period.
+
+    Loop: flow F_k (screw speed x FF, with the controller's FF model exact) through the drive
+    lag ``F_k = F_{k-1} + a_m (u_k - F_{k-1})``; load-cell least-squares slope over the window,
+    which is a weighted sum of past flows ``raw_k = sum_j c_j F_{k-j}``; first-order filter
+    ``f_k = f_{k-1} + a_f (raw_k - f_{k-1})``; PID ``u_k = kp e_k + I_k + kd (e_k - e_{k-1})/T``
+    with ``e_k = -f_k`` (deviation variables), ``I_k = I_{k-1} + ki T e_k``. Stable iff < 1.
+    """
+    tc = cfg.control_period_s
+    nw = max(2, int(round(cfg.flow_window_s / tc)))
+    lag = np.arange(nw) - (nw - 1) / 2.0
+    s = lag / float(lag @ lag) / tc  # slope weights on m_{k-nw+1..k}
+    # m_i = m_k + T sum_{l=i}^{k-1} F_l  ->  -slope = sum_j c_j F_{k-j}, j = 1..nw-1
+    cum = np.cumsum(s)  # sum over window positions 0..p
+    c = np.array([-tc * cum[nw - 1 - j] for j in range(1, nw)])
+    a_f = 1.0 - math.exp(-tc / cfg.flow_filter_tau_s) if cfg.flow_filter_tau_s > 0 else 1.0
+    a_m = 1.0 - math.exp(-tc / cfg.motor_tau_s) if cfg.motor_tau_s > 0 else 1.0
+    nb = nw - 1  # flow history F_k .. F_{k-nw+2}
+    dim = nb + 3  # + f, I, e
+
+    def step(x: np.ndarray) -> np.ndarray:
+        hist, f, integ, e_prev = x[:nb], x[nb], x[nb + 1], x[nb + 2]
+        raw = float(c @ hist)
+        f_new = f + a_f * (raw - f)
+        e = -f_new
+        integ_new = integ + cfg.ki * tc * e
+        u = cfg.kp * e + integ_new + cfg.kd * (e - e_prev) / tc
+        flow = hist[0] + a_m * (u - hist[0])
+        out = np.empty(dim)
+        out[0] = flow
+        out[1:nb] = hist[: nb - 1]
+        out[nb], out[nb + 1], out[nb + 2] = f_new, integ_new, e
+        return out
+
+    a = np.column_stack([step(col) for col in np.eye(dim)])
+    return float(np.max(np.abs(np.linalg.eigvals(a))))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from schemas.feeder import FeederConfig
+from schemas.feeder import FeederConfig, loop_spectral_radius
 from twin_core.feeder import LossInWeightFeeder, feed_factor, fit_feed_factor
 
 QUIET = dict(flow_noise_rel=0.0, load_cell_noise_kg=0.0)
@@ -134,11 +134,43 @@ def test_seeded_noise_is_reproducible():
         (dict(flow_window_s=0.1), "flow_window_s"),
         (dict(setpoint_schedule=[(10.0, 5.0), (5.0, 6.0)]), "increasing"),
         (dict(bogus=1), "bogus"),
+        (dict(kp=3.0, ki=0.1), "unstable"),
+        (dict(kp=0.3, ki=1.0), "unstable"),
     ],
 )
 def test_bad_controller_config_raises_clear_error(kwargs, match):
     with pytest.raises(ValueError, match=match):
         LossInWeightFeeder(**kwargs)
+
+
+def test_stability_check_agrees_with_simulation():
+    """The linearised-loop spectral radius (discrete-time stability, |z| < 1) predicts the
+    simulated response to a set-point step: decaying below 1, growing (to a limit cycle at the
+    speed limits) above 1."""
+    base = FeederConfig(
+        beta_per_kg=0.0, refill_enabled=False, setpoint_schedule=[(50.0, 10.0)], **QUIET
+    )
+    for kp, ki, stable in [
+        (0.3, 0.1, True),
+        (1.0, 0.3, True),
+        (3.0, 0.1, False),
+        (0.3, 1.0, False),
+    ]:
+        cfg = base.model_copy(update=dict(kp=kp, ki=ki))  # model_copy skips validation
+        assert (loop_spectral_radius(cfg) < 1.0) == stable
+        f = LossInWeightFeeder.__new__(LossInWeightFeeder)
+        f.config = cfg
+        tr = f.simulate(600.0, 0.1, seed=0)
+        late = np.abs(tr.mass_flow_kg_h[tr.t_s > 500] - 10.0).max()
+        assert (late < 0.05) == stable, (kp, ki, late)
+
+
+def test_loop_gain_independent_of_feed_factor_scale():
+    """Gain scheduling through FF(W): a powder with a 10x larger feed factor is controlled
+    as well with the same gains (set point held, no oscillation)."""
+    f = LossInWeightFeeder(ff_max_g_rev=60.0, ff_min_g_rev=35.0, refill_enabled=False, **QUIET)
+    tr = f.simulate(300.0, 0.1, seed=0)
+    assert np.allclose(tr.mass_flow_kg_h[tr.t_s > 150], 12.0, rtol=2e-3)
 
 
 def test_bad_simulation_arguments():

@@ -10,9 +10,11 @@ Model (seed ch. 3.1; Engisch & Muzzio 2016 for the LIW control scheme):
 * load cell ``m_k = W(t_k) + N(0, sigma_lc^2)`` sampled every control period; the flow
   estimate is minus the least-squares slope of ``m`` over the last ``flow_window_s``, passed
   through a first-order filter;
-* gravimetric mode: positional PID ``w_cmd = kp e + I + kd de/dt``, ``e = F_sp - F_est``
-  (kg/h), with the integrator holding the bias (bumpless start at ``F_sp / FF(W0)``) and
-  clamping anti-windup at the screw-speed limits;
+* gravimetric mode: positional PID on the flow error ``e = F_sp - F_est`` (kg/h) giving a
+  flow demand ``u = kp e + I + kd de/dt`` (kg/h), turned into a screw speed through the
+  controller's feed-factor model at the measured weight, ``w_cmd = u / FF(m)`` (gain
+  scheduling, so the loop gain is ~1 whatever the powder); the integrator holds the bias
+  (bumpless start and restart from the held speed); clamping anti-windup at the speed limits;
 * refill: when the load cell reads ``<= refill_low_kg`` the controller switches to
   volumetric mode, holding the mean commanded speed of the last window, and powder is added
   at ``refill_rate_kg_s`` until the load cell reads ``>= refill_high_kg``; after
@@ -211,24 +213,26 @@ class LossInWeightFeeder:
                     n_valid += 1
                 if c.mode == "gravimetric" and not in_hold and n_valid >= nw:
                     raw = -float(slope_w @ buf[head : head + nw]) * 3600.0
+                    # the controller's own feed-factor model at the measured weight (kg/h per rpm)
+                    ffm = max(ff_of(max(m, 0.0)), 1e-12) * k_flow
                     if not gravimetric:  # (re)start: bumpless from the held speed
                         gravimetric = True
                         f_est = raw
-                        integ = speed_cmd
+                        integ = speed_cmd * ffm
                         prev_err = None
                     else:
                         f_est += a_filt * (raw - f_est)
                     err = sp - f_est
                     deriv = 0.0 if prev_err is None else (err - prev_err) / tc
                     prev_err = err
-                    u = c.kp * err + integ + c.ki * err * tc + c.kd * deriv
+                    trial = (c.kp * err + integ + c.ki * err * tc + c.kd * deriv) / ffm
                     if (
-                        lo_rpm < u < hi_rpm
-                        or (u >= hi_rpm and err < 0)
-                        or (u <= lo_rpm and err > 0)
+                        lo_rpm < trial < hi_rpm
+                        or (trial >= hi_rpm and err < 0)
+                        or (trial <= lo_rpm and err > 0)
                     ):
                         integ += c.ki * err * tc
-                    speed_cmd = clamp(c.kp * err + integ + c.kd * deriv)
+                    speed_cmd = clamp((c.kp * err + integ + c.kd * deriv) / ffm)
                 elif c.mode == "gravimetric" and in_hold:
                     speed_cmd = hold_speed
                 cmd_buf[(k // n_ctrl) % nw] = speed_cmd
