@@ -129,6 +129,10 @@ class TypedPublisher:
         self.counters.inc("published")
         return msg
 
+    def has_subscribers(self) -> bool:
+        """Whether a matching subscriber is known (zenoh matching status)."""
+        return bool(self._pub.matching_status.matching)
+
     def undeclare(self) -> None:
         self._pub.undeclare()
 
@@ -150,6 +154,10 @@ class RawPublisher:
 
     def put(self, payload: bytes) -> None:
         self._pub.put(payload)
+
+    def has_subscribers(self) -> bool:
+        """Whether a matching subscriber is known (zenoh matching status)."""
+        return bool(self._pub.matching_status.matching)
 
     def undeclare(self) -> None:
         self._pub.undeclare()
@@ -237,12 +245,13 @@ class MessageValidator:
         return msg
 
 
-Callback = Callable[[str, Any], None]
+Callback = Callable[..., None]
 
 
 class TypedSubscriber:
     """Subscribes to a key expression, validates every sample and calls ``callback(key, msg)``
-    for the valid ones (zenoh's callback thread). Invalid samples are counted, logged, skipped;
+    for the valid ones (zenoh's callback thread; ``callback(key, msg, payload_bytes)`` with
+    ``with_payload=True``). Invalid samples are counted, logged, skipped;
     an exception in ``callback`` is counted (``callback_errors``) and logged, never propagated."""
 
     def __init__(
@@ -256,8 +265,10 @@ class TypedSubscriber:
         check_time: bool = True,
         allow_unknown: bool = False,
         name: str = "subscriber",
+        with_payload: bool = False,
     ) -> None:
         self.key_expr = key_expr
+        self.with_payload = with_payload
         self.counters = counters or Counters()
         self.validator = MessageValidator(
             self.counters,
@@ -276,12 +287,16 @@ class TypedSubscriber:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        msg = self.validator.check(key, sample.payload.to_bytes())
+        payload = sample.payload.to_bytes()
+        msg = self.validator.check(key, payload)
         if msg is None:
             return
         self.counters.inc("received")
         try:
-            self._callback(key, msg)
+            if self.with_payload:
+                self._callback(key, msg, payload)
+            else:
+                self._callback(key, msg)
         except Exception:  # noqa: BLE001 - a consumer bug must not kill the zenoh thread
             self.counters.inc("callback_errors")
             log.exception("callback for %s failed", key)
@@ -467,16 +482,17 @@ class Service:
         model: type[Message] | None = None,
         check_time: bool = True,
         allow_unknown: bool = False,
+        with_payload: bool = False,
     ) -> TypedSubscriber:
         """Typed subscription; see :class:`TypedSubscriber`. Time order is checked per key.
 
         The callback also advances :attr:`plant_time_s` (reported in health)."""
 
-        def wrapped(key: str, msg: Any) -> None:
+        def wrapped(key: str, msg: Any, *payload: bytes) -> None:
             t = getattr(msg, "t", None)
             if t is not None and t > self.plant_time_s:
                 self.plant_time_s = t
-            callback(key, msg)
+            callback(key, msg, *payload)
 
         sub = TypedSubscriber(
             self._require_session(),
@@ -487,6 +503,7 @@ class Service:
             check_time=check_time,
             allow_unknown=allow_unknown,
             name=self.name,
+            with_payload=with_payload,
         )
         self._entities.append(sub)
         return sub

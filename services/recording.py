@@ -1,0 +1,754 @@
+"""MCAP recordings of the bus: writer, reader (with recovery of files cut short), replay, and
+the line-data loader.
+
+File layout (the Foxglove convention, so a recording opens in Foxglove as it is): one channel per
+key expression (topic = key expression, no leading ``/``), ``message_encoding="json"``, each
+channel's schema is the ``jsonschema`` of its pydantic model (``model_json_schema()``; a key with
+no known model gets the schema ``{"type": "object"}`` named ``json_object``), ``log_time`` = plant
+time ``t`` in ns, ``publish_time`` = wall-clock time of reception in ns, ``sequence`` = per-channel
+message counter. Chunked (1 MiB), zstd compressed. The payload bytes are stored exactly as they
+were received on the bus.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from collections import Counter, defaultdict
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import pandas as pd
+from mcap.reader import make_reader
+from mcap.records import Channel, Schema
+from mcap.records import Message as McapMessage
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+from pydantic import BaseModel
+
+from schemas import keys as keys_mod
+from schemas.base import Message, json_schema
+
+log = logging.getLogger(__name__)
+
+UNKNOWN_SCHEMA_NAME = "json_object"
+UNKNOWN_SCHEMA = {"type": "object", "title": UNKNOWN_SCHEMA_NAME}
+NS = 1_000_000_000
+
+
+def plant_time_ns(t: float) -> int:
+    """Plant time in s -> MCAP log_time in ns (rounded to the nearest ns)."""
+    if not math.isfinite(t) or t < 0:
+        raise ValueError(f"t must be a finite plant time >= 0, got {t!r}")
+    return int(round(t * NS))
+
+
+def schema_name(model: type[BaseModel]) -> str:
+    """Schema name stored in MCAP: the model's qualified name, e.g. ``schemas.messages.FeederFlow``."""
+    return f"{model.__module__}.{model.__qualname__}"
+
+
+# -------------------------------------------------------------------------------------------
+# writer
+
+
+class McapRecorder:
+    """Writes bus messages to an MCAP file.
+
+    ``write(key, payload, t)`` stores the payload bytes as they are on channel ``key``;
+    ``write_message(key, msg)`` encodes a model. The file is finalized by :meth:`close` (or the
+    ``with`` block); :meth:`flush` writes the open chunk to the file and is called every
+    ``flush_every`` messages and every ``flush_period_s`` seconds (in :meth:`write`), so that a
+    crash loses at most that much (see :func:`read_recording` for recovery).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        flush_every: int = 1000,
+        flush_period_s: float | None = 2.0,
+        chunk_size: int = 1024 * 1024,
+        compression: str = "zstd",
+    ) -> None:
+        if flush_every < 1:
+            raise ValueError(f"flush_every must be >= 1, got {flush_every}")
+        comp = {
+            "zstd": CompressionType.ZSTD,
+            "lz4": CompressionType.LZ4,
+            "none": CompressionType.NONE,
+        }
+        if compression not in comp:
+            raise ValueError(f"compression must be one of {sorted(comp)}, got {compression!r}")
+        self.path = Path(path)
+        self.flush_every = flush_every
+        self.flush_period_s = flush_period_s
+        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp[compression])
+        self._writer.start(profile="", library="powder-twin")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._seq: dict[str, int] = defaultdict(int)
+        self.counts: Counter[str] = Counter()
+        self._since_flush = 0
+        self._last_flush = time.monotonic()
+        self._closed = False
+
+    def _schema_id(self, model: type[BaseModel] | None) -> int:
+        name = schema_name(model) if model is not None else UNKNOWN_SCHEMA_NAME
+        if name not in self._schemas:
+            data = json_schema(model) if model is not None else UNKNOWN_SCHEMA
+            self._schemas[name] = self._writer.register_schema(
+                name=name, encoding="jsonschema", data=json.dumps(data).encode()
+            )
+        return self._schemas[name]
+
+    def channel_id(self, key: str, model: type[BaseModel] | None = None) -> int:
+        """Channel of a key (registered on first use; ``model`` defaults to the key's model)."""
+        if key not in self._channels:
+            model = model or keys_mod.model_for_key(key)
+            self._channels[key] = self._writer.register_channel(
+                topic=key, message_encoding="json", schema_id=self._schema_id(model)
+            )
+        return self._channels[key]
+
+    def write(
+        self,
+        key: str,
+        payload: bytes,
+        t: float,
+        *,
+        publish_time_ns: int | None = None,
+        model: type[BaseModel] | None = None,
+    ) -> None:
+        if self._closed:
+            raise ValueError(f"recorder for {self.path} is closed")
+        cid = self.channel_id(key, model)
+        log_time = plant_time_ns(t)
+        self._writer.add_message(
+            channel_id=cid,
+            log_time=log_time,
+            data=payload,
+            publish_time=time.time_ns() if publish_time_ns is None else publish_time_ns,
+            sequence=self._seq[key],
+        )
+        self._seq[key] += 1
+        self.counts[key] += 1
+        self._since_flush += 1
+        if self._since_flush >= self.flush_every or (
+            self.flush_period_s is not None
+            and time.monotonic() - self._last_flush >= self.flush_period_s
+        ):
+            self.flush()
+
+    def write_message(self, key: str, msg: Message, *, publish_time_ns: int | None = None) -> None:
+        self.write(
+            key, msg.to_json_bytes(), msg.t, publish_time_ns=publish_time_ns, model=type(msg)
+        )
+
+    def flush(self) -> None:
+        """Write the open chunk to the file (not fsync: covers a process crash)."""
+        if self._since_flush:
+            self._writer.flush()
+        self._since_flush = 0
+        self._last_flush = time.monotonic()
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._writer.finish()
+        finally:
+            self._file.close()
+
+    def __enter__(self) -> McapRecorder:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+# -------------------------------------------------------------------------------------------
+# reader
+
+
+@dataclass(frozen=True)
+class RecordedMessage:
+    """One message of a recording: key, times (ns), per-channel sequence, raw payload bytes."""
+
+    key: str
+    log_time_ns: int
+    publish_time_ns: int
+    sequence: int
+    payload: bytes
+    schema_name: str
+
+    @property
+    def t(self) -> float:
+        """Plant time, s."""
+        return self.log_time_ns / NS
+
+    def decode(self) -> Message | dict[str, Any]:
+        """The message model instance (validated) or, for an unknown key, the JSON dict."""
+        model = keys_mod.model_for_key(self.key)
+        if model is None:
+            return json.loads(self.payload)
+        return model.model_validate_json(self.payload)
+
+
+@dataclass
+class ChannelInfo:
+    key: str
+    schema_name: str
+    schema: dict[str, Any]
+    message_count: int = 0
+
+
+@dataclass
+class Recording:
+    """A recording read into memory.
+
+    ``messages`` are in ``log_time`` order (file order among equal times). ``truncated`` is True
+    when the file was cut short (no valid summary/footer); then ``messages`` holds every message
+    of every complete chunk before the cut, and ``error`` and ``bytes_unread`` describe the loss.
+    """
+
+    path: Path
+    messages: list[RecordedMessage]
+    channels: dict[str, ChannelInfo]
+    truncated: bool = False
+    error: str | None = None
+    bytes_read: int = 0
+    bytes_total: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def bytes_unread(self) -> int:
+        return max(0, self.bytes_total - self.bytes_read)
+
+    @property
+    def start_ns(self) -> int | None:
+        return self.messages[0].log_time_ns if self.messages else None
+
+    @property
+    def end_ns(self) -> int | None:
+        return self.messages[-1].log_time_ns if self.messages else None
+
+    @property
+    def duration_s(self) -> float:
+        if not self.messages:
+            return 0.0
+        return (self.messages[-1].log_time_ns - self.messages[0].log_time_ns) / NS
+
+    def loss_report(self) -> str:
+        """One line about completeness, e.g. for ``twin inspect`` and replay."""
+        if not self.truncated:
+            return f"complete: {len(self.messages)} messages"
+        return (
+            f"TRUNCATED at byte {self.bytes_read} of {self.bytes_total} ({self.error}); "
+            f"recovered {len(self.messages)} messages of the complete chunks; "
+            f"the {self.bytes_unread} bytes after the cut (the last unflushed chunk) are lost"
+        )
+
+
+def _channel_info(channel: Channel, schema: Schema | None) -> ChannelInfo:
+    if schema is None or not schema.data:
+        return ChannelInfo(channel.topic, UNKNOWN_SCHEMA_NAME, dict(UNKNOWN_SCHEMA))
+    return ChannelInfo(channel.topic, schema.name, json.loads(schema.data))
+
+
+def _read_complete(path: Path) -> Recording:
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        if summary is None:
+            raise ValueError(f"{path} has no summary")
+        channels = {
+            c.topic: _channel_info(c, summary.schemas.get(c.schema_id))
+            for c in summary.channels.values()
+        }
+        messages = []
+        for schema, channel, message in reader.iter_messages(log_time_order=True):
+            messages.append(_recorded(channel, schema, message))
+    for m in messages:
+        channels[m.key].message_count += 1
+    size = path.stat().st_size
+    return Recording(path, messages, channels, bytes_read=size, bytes_total=size)
+
+
+def _recorded(channel: Channel, schema: Schema | None, message: McapMessage) -> RecordedMessage:
+    return RecordedMessage(
+        key=channel.topic,
+        log_time_ns=message.log_time,
+        publish_time_ns=message.publish_time,
+        sequence=message.sequence,
+        payload=bytes(message.data),
+        schema_name=schema.name if schema is not None else UNKNOWN_SCHEMA_NAME,
+    )
+
+
+def _recover(path: Path) -> Recording:
+    """Read a file in file order with CRC validation, stopping at the first error; keep every
+    message of every complete chunk before it."""
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    messages: list[RecordedMessage] = []
+    error = None
+    good_pos = 0
+    with open(path, "rb") as f:
+        reader = StreamReader(f, validate_crcs=True)
+        records = reader.records
+        pending: list[RecordedMessage] = []
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                break
+            except Exception as exc:  # noqa: BLE001 - EndOfFile, struct, zstd, CRC errors
+                error = f"{type(exc).__name__}: {exc}".strip().rstrip(":")
+                break
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, McapMessage):
+                ch = channels.get(record.channel_id)
+                if ch is None:
+                    continue
+                pending.append(_recorded(ch, schemas.get(ch.schema_id), record))
+            messages.extend(pending)
+            pending.clear()
+            good_pos = reader._stream.count  # bytes consumed by complete records
+    size = path.stat().st_size
+    infos: dict[str, ChannelInfo] = {}
+    for ch in channels.values():
+        infos[ch.topic] = _channel_info(ch, schemas.get(ch.schema_id))
+    messages.sort(key=lambda m: m.log_time_ns)
+    for m in messages:
+        infos[m.key].message_count += 1
+    truncated = error is not None
+    return Recording(
+        path,
+        messages,
+        infos,
+        truncated=truncated,
+        error=error if truncated else None,
+        bytes_read=min(good_pos, size) if truncated else size,
+        bytes_total=size,
+    )
+
+
+def read_recording(path: str | Path, *, keys: Iterable[str] | None = None) -> Recording:
+    """Read a recording; a file cut short (crash) is recovered (see :class:`Recording`).
+
+    ``keys``: keep only these channels (exact keys).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"recording not found: {path}")
+    try:
+        rec = _read_complete(path)
+    except Exception as exc:  # noqa: BLE001 - any failure of the indexed path -> recovery
+        log.debug("indexed read of %s failed (%s); recovering", path, exc)
+        rec = _recover(path)
+        if rec.truncated:
+            log.warning("%s: %s", path, rec.loss_report())
+    if keys is not None:
+        wanted = set(keys)
+        rec.messages = [m for m in rec.messages if m.key in wanted]
+        rec.channels = {k: c for k, c in rec.channels.items() if k in wanted}
+    return rec
+
+
+def summarize(rec: Recording) -> str:
+    """Human-readable summary: channels, schema names, message counts, time span."""
+    lines = [f"file: {rec.path} ({rec.bytes_total} bytes)", rec.loss_report()]
+    if rec.messages:
+        lines.append(
+            f"plant time: {rec.start_ns / NS:.3f} s .. {rec.end_ns / NS:.3f} s "
+            f"(span {rec.duration_s:.3f} s)"
+        )
+    lines.append(f"channels: {len(rec.channels)}")
+    width = max((len(k) for k in rec.channels), default=10)
+    for key in sorted(rec.channels):
+        c = rec.channels[key]
+        lines.append(f"  {key:<{width}}  {c.message_count:>8} msgs  schema {c.schema_name}")
+    names = sorted({c.schema_name for c in rec.channels.values()})
+    lines.append(f"schemas: {', '.join(names)}")
+    return "\n".join(lines)
+
+
+# -------------------------------------------------------------------------------------------
+# replay
+
+
+@dataclass
+class ReplayStats:
+    published: int = 0
+    passes: int = 0
+    wall_s: float = 0.0
+    plant_span_s: float = 0.0
+    max_lag_s: float = 0.0
+    stopped: bool = False
+
+    @property
+    def rate_msg_s(self) -> float:
+        return self.published / self.wall_s if self.wall_s > 0 else math.inf
+
+
+def _shift(payload: bytes, dt: float, dseq: int) -> bytes:
+    data = json.loads(payload)
+    data["t"] = float(data["t"]) + dt
+    if "seq" in data:
+        data["seq"] = int(data["seq"]) + dseq
+    return json.dumps(data, separators=(",", ":")).encode()
+
+
+def replay(
+    rec: Recording,
+    publish: Callable[[str, bytes], None],
+    *,
+    speed: float = 1.0,
+    as_fast_as_possible: bool = False,
+    loop: bool = False,
+    max_passes: int | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> ReplayStats:
+    """Publish the messages of a recording with their plant-time spacing divided by ``speed``.
+
+    ``publish(key, payload)`` sends one message (e.g. a zenoh put). Message i is sent at
+    ``wall_start + (t_i - t_0) / speed`` (or back to back with ``as_fast_as_possible``).
+    The first pass sends the payloads byte for byte. With ``loop``, each later pass k shifts
+    ``t`` by ``k * (span + dt)`` (dt: the smallest positive gap between successive messages, or
+    1 s) and ``seq`` by ``k * (max seq + 1)`` per key, re-encoding the payload, so that plant time
+    and sequence numbers keep increasing. ``should_stop()`` is polled between messages.
+    """
+    if not as_fast_as_possible and (not math.isfinite(speed) or speed <= 0):
+        raise ValueError(f"speed must be a finite number > 0, got {speed!r}")
+    stats = ReplayStats()
+    msgs = rec.messages
+    if not msgs:
+        return stats
+    t0 = msgs[0].log_time_ns
+    span_ns = msgs[-1].log_time_ns - t0
+    stats.plant_span_s = span_ns / NS
+    gaps = [b.log_time_ns - a.log_time_ns for a, b in zip(msgs, msgs[1:], strict=False)]
+    positive = [g for g in gaps if g > 0]
+    step_ns = min(positive) if positive else NS
+    max_seq: dict[str, int] = {}
+    wall0 = time.perf_counter()
+    passes = 0
+    while True:
+        shift_ns = passes * (span_ns + step_ns)
+        for m in msgs:
+            if should_stop is not None and should_stop():
+                stats.stopped = True
+                break
+            if not as_fast_as_possible:
+                due = (m.log_time_ns - t0 + shift_ns) / NS / speed
+                now = time.perf_counter() - wall0
+                if due > now:
+                    time.sleep(due - now)
+                else:
+                    stats.max_lag_s = max(stats.max_lag_s, now - due)
+            if passes == 0:
+                payload = m.payload
+                if loop:
+                    try:
+                        seq = int(json.loads(payload).get("seq", 0))
+                    except (ValueError, AttributeError):
+                        seq = 0
+                    max_seq[m.key] = max(max_seq.get(m.key, 0), seq)
+            else:
+                payload = _shift(m.payload, shift_ns / NS, passes * (max_seq.get(m.key, 0) + 1))
+            publish(m.key, payload)
+            stats.published += 1
+        passes += 1
+        if stats.stopped or not loop or (max_passes is not None and passes >= max_passes):
+            break
+    stats.passes = passes
+    stats.wall_s = time.perf_counter() - wall0
+    return stats
+
+
+# -------------------------------------------------------------------------------------------
+# line data for analysis
+
+
+class LineData(NamedTuple):
+    """Return of :func:`load_line_data`.
+
+    ``signals``: a DataFrame indexed by ``t_s`` (plant time, s, float, ascending, unique): one row
+    per distinct plant time at which any of the signals below was recorded; a column is NaN where
+    its signal has no sample at that time (align with ``.ffill()`` / ``.interpolate()`` as
+    needed). Columns (one group per feeder component / sensor+component / model+component found):
+
+    - ``flow_<component>_kg_h`` (float): measured mass flow of the feeder of that component;
+    - ``setpoint_<component>_kg_h``, ``screw_speed_<component>_rpm``,
+      ``hopper_mass_<component>_kg``, ``feed_factor_<component>_g_rev`` (float);
+    - ``refilling_<component>`` (float 1.0/0.0, NaN where no sample);
+    - ``total_flow_kg_h`` (float): sum of the ``flow_*`` columns where all are present;
+    - ``conc_<sensor>_<component>_pct_w_w`` (float): measured concentration, % w/w;
+    - ``quality_<sensor>_<component>`` (str 'good'/'suspect'/'bad', or NaN);
+    - ``pred_<model>_<component>_pct_w_w`` (float): predicted concentration, if recorded.
+
+    ``events``: a DataFrame with one row per :class:`schemas.messages.Event`, in time order,
+    columns ``t_s`` (float), ``kind``, ``source``, ``component`` (str or None), ``mass_kg``,
+    ``duration_s``, ``magnitude`` (float or NaN), ``detail`` (str), ``key`` (str).
+    """
+
+    signals: pd.DataFrame
+    events: pd.DataFrame
+
+
+EVENT_COLUMNS = [
+    "t_s",
+    "kind",
+    "source",
+    "component",
+    "mass_kg",
+    "duration_s",
+    "magnitude",
+    "detail",
+    "key",
+]
+
+
+def load_line_data(path: str | Path) -> LineData:
+    """Load feeder flows, measured (and predicted) concentrations and events of a recording.
+
+    Reads an MCAP recording (a truncated one is recovered) and decodes the messages on
+    ``twin/<line>/feeder/<id>/flow`` (FeederFlow), ``.../concentration`` (MeasuredConcentration),
+    ``.../predicted`` (PredictedConcentration) and ``.../event`` (Event) into a
+    :class:`LineData` ``(signals, events)``; see :class:`LineData` for the exact columns.
+    Other channels are ignored. Raises FileNotFoundError for a missing file.
+    """
+    from schemas.messages import Event, FeederFlow, MeasuredConcentration, PredictedConcentration
+
+    rec = read_recording(path)
+    cols: dict[str, dict[float, Any]] = defaultdict(dict)
+    events: list[dict[str, Any]] = []
+    flow_cols: set[str] = set()
+    for m in rec.messages:
+        model = keys_mod.model_for_key(m.key)
+        if model not in (FeederFlow, MeasuredConcentration, PredictedConcentration, Event):
+            continue
+        msg = model.model_validate_json(m.payload)
+        t = msg.t
+        if isinstance(msg, FeederFlow):
+            c = msg.component
+            cols[f"flow_{c}_kg_h"][t] = msg.mass_flow_kg_h
+            flow_cols.add(f"flow_{c}_kg_h")
+            if msg.setpoint_kg_h is not None:
+                cols[f"setpoint_{c}_kg_h"][t] = msg.setpoint_kg_h
+            cols[f"screw_speed_{c}_rpm"][t] = msg.screw_speed_rpm
+            cols[f"hopper_mass_{c}_kg"][t] = msg.hopper_mass_kg
+            cols[f"feed_factor_{c}_g_rev"][t] = msg.feed_factor_g_rev
+            cols[f"refilling_{c}"][t] = 1.0 if msg.refilling else 0.0
+        elif isinstance(msg, MeasuredConcentration):
+            cols[f"conc_{msg.sensor}_{msg.component}_pct_w_w"][t] = msg.concentration_pct_w_w
+            cols[f"quality_{msg.sensor}_{msg.component}"][t] = msg.quality
+        elif isinstance(msg, PredictedConcentration):
+            cols[f"pred_{msg.model}_{msg.component}_pct_w_w"][t] = msg.concentration_pct_w_w
+        else:
+            events.append(
+                {
+                    "t_s": t,
+                    "kind": msg.kind,
+                    "source": msg.source,
+                    "component": msg.component,
+                    "mass_kg": msg.mass_kg if msg.mass_kg is not None else math.nan,
+                    "duration_s": msg.duration_s if msg.duration_s is not None else math.nan,
+                    "magnitude": msg.magnitude if msg.magnitude is not None else math.nan,
+                    "detail": msg.detail,
+                    "key": m.key,
+                }
+            )
+    signals = pd.DataFrame({name: pd.Series(values) for name, values in sorted(cols.items())})
+    signals = signals.sort_index()
+    signals.index = signals.index.astype(float)
+    signals.index.name = "t_s"
+    if flow_cols:
+        signals["total_flow_kg_h"] = signals[sorted(flow_cols)].sum(axis=1, skipna=False)
+    ev = pd.DataFrame(events, columns=EVENT_COLUMNS)
+    if not ev.empty:
+        ev = ev.sort_values("t_s", kind="stable").reset_index(drop=True)
+    return LineData(signals, ev)
+
+
+def file_size_mb(path: str | Path) -> float:
+    return os.path.getsize(path) / 1e6
+
+
+# -------------------------------------------------------------------------------------------
+# bus side: record the bus, replay a recording onto it
+
+
+@dataclass
+class RecordStats:
+    path: Path
+    counts: dict[str, int]
+    rejected: dict[str, int]
+    wall_s: float
+    reason: str
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+def record_bus(
+    path: str | Path,
+    config: Any = None,
+    *,
+    key_expr: str = "twin/**",
+    count: int | None = None,
+    duration_s: float | None = None,
+    idle_timeout_s: float | None = None,
+    flush_every: int = 1000,
+    service_name: str = "recorder",
+    install_signal_handlers: bool = True,
+    on_ready: Callable[[], None] | None = None,
+    exclude_health: bool = False,
+) -> RecordStats:
+    """Record every valid message on ``key_expr`` to ``path`` until stopped.
+
+    Stops on SIGINT/SIGTERM, after ``count`` messages, after ``duration_s`` seconds, or when no
+    message arrived for ``idle_timeout_s`` after the first one; the file is finalized in every
+    case. Messages are validated against their key's model (time order is not checked: a
+    recording keeps what was on the bus); invalid ones are counted and not written. A key
+    without a model is recorded if its payload is a JSON object with a numeric ``t`` >= 0.
+    ``exclude_health``: skip ``twin/<line>/service/...`` keys (health of the services).
+    """
+    import threading
+
+    from services.bus import Service
+
+    svc = Service(service_name, config, install_signal_handlers=install_signal_handlers)
+    lock = threading.Lock()
+    state = {"closed": False, "last": None}
+    recorder = McapRecorder(path, flush_every=flush_every)
+
+    def on_message(key: str, msg: Any, raw: bytes) -> None:
+        if exclude_health and key.split("/")[2:3] == ["service"]:
+            return
+        if isinstance(msg, dict):
+            t = msg.get("t")
+            if (
+                not isinstance(t, (int, float))
+                or isinstance(t, bool)
+                or not math.isfinite(t)
+                or t < 0
+            ):
+                svc.counters.inc("rejected_schema")
+                svc.counters.last_error = f"{key}: unknown-model payload without a valid 't'"
+                return
+        else:
+            t = msg.t
+        with lock:
+            if state["closed"]:
+                return
+            recorder.write(key, raw, float(t))
+            state["last"] = time.monotonic()
+            if count is not None and recorder.total >= count:
+                svc.stop()
+
+    t0 = time.monotonic()
+    reason = "signal"
+    try:
+        svc.open()
+        svc.subscribe(key_expr, on_message, check_time=False, allow_unknown=True, with_payload=True)
+        if on_ready is not None:
+            on_ready()
+        while not svc.stop_flag.wait(0.05):
+            now = time.monotonic()
+            if duration_s is not None and now - t0 >= duration_s:
+                reason = "duration"
+                break
+            last = state["last"]
+            if idle_timeout_s is not None and last is not None and now - last >= idle_timeout_s:
+                reason = "idle"
+                break
+        else:
+            if count is not None and recorder.total >= count:
+                reason = "count"
+    finally:
+        svc.close()
+        with lock:
+            state["closed"] = True
+            recorder.close()
+    snap = svc.counters.snapshot()
+    rejected = {k: v for k, v in snap.items() if k.startswith("rejected")}
+    return RecordStats(Path(path), dict(recorder.counts), rejected, time.monotonic() - t0, reason)
+
+
+def validate_messages(rec: Recording) -> tuple[list[RecordedMessage], dict[str, int]]:
+    """Split a recording's messages into the valid ones (in order) and counts of rejections
+    by reason (``rejected_json``, ``rejected_schema``); keys without a model pass if JSON."""
+    from services.bus import Counters, MessageValidator
+
+    counters = Counters()
+    validator = MessageValidator(counters, check_time=False, allow_unknown=True, name="replay")
+    valid = [m for m in rec.messages if validator.check(m.key, m.payload) is not None]
+    return valid, {k: v for k, v in counters.snapshot().items() if k.startswith("rejected")}
+
+
+def replay_to_bus(
+    rec: Recording,
+    config: Any = None,
+    *,
+    speed: float = 1.0,
+    as_fast_as_possible: bool = False,
+    loop: bool = False,
+    max_passes: int | None = None,
+    wait_for_subscribers_s: float = 0.0,
+    settle_s: float = 0.0,
+    service_name: str = "replay",
+    install_signal_handlers: bool = True,
+) -> ReplayStats:
+    """Publish a recording onto the bus (see :func:`replay`), validating every message first.
+
+    ``wait_for_subscribers_s``: wait up to this long until every channel's publisher has a
+    matching subscriber before starting; ``settle_s``: extra wait before starting (lets the
+    subscriber side finish declaring). Stops early on SIGINT/SIGTERM.
+    """
+    from services.bus import Service
+
+    valid, rejected = validate_messages(rec)
+    if any(rejected.values()):
+        log.warning("replay: skipping invalid recorded messages: %s", rejected)
+    rec_valid = Recording(rec.path, valid, rec.channels, rec.truncated, rec.error)
+    with Service(service_name, config, install_signal_handlers=install_signal_handlers) as svc:
+        pubs = {key: svc.raw_publisher(key) for key in sorted({m.key for m in valid})}
+        deadline = time.monotonic() + wait_for_subscribers_s
+        while wait_for_subscribers_s > 0 and time.monotonic() < deadline:
+            if all(p.has_subscribers() for p in pubs.values()) or svc.stopping:
+                break
+            time.sleep(0.02)
+        if settle_s > 0:
+            svc.stop_flag.wait(settle_s)
+
+        def publish(key: str, payload: bytes) -> None:
+            pubs[key].put(payload)
+            svc.counters.inc("published")
+
+        stats = replay(
+            rec_valid,
+            publish,
+            speed=speed,
+            as_fast_as_possible=as_fast_as_possible,
+            loop=loop,
+            max_passes=max_passes,
+            should_stop=svc.stop_flag.is_set,
+        )
+    return stats
