@@ -1,0 +1,124 @@
+"""Design campaigns: parallel, resumable, on a process pool, any executor, or Dask."""
+
+from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import pandas as pd
+import pytest
+
+from twin_core.calibration import SEED_FACTORS, SEED_LEVELS, TwoStepRSM, definitive_screening_design
+from twin_core.calibration.campaign import (
+    export_results,
+    run_campaign,
+    run_seed,
+    surrogate_drawdown,
+)
+
+
+def _design() -> pd.DataFrame:
+    d = definitive_screening_design(SEED_LEVELS).physical.reset_index()
+    return d
+
+
+def test_process_pool_campaign_feeds_stepwise(tmp_path):
+    """21-run DSD through the surrogate drawdown (seed surfaces + model-RMSE noise) on a
+    2-process pool; the stepwise fit of the results finds the seed's shear-angle main effects
+    PP_SF, PP_RF, PW_SF (Fig. 8.1)."""
+    surrogate_drawdown(_design().iloc[0].to_dict(), 0)  # fit the surrogate once, before forking
+    out = run_campaign(
+        _design(), surrogate_drawdown, tmp_path / "res.csv", seed=5, n_workers=2, progress=False
+    )
+    assert len(out) == 21 and (out.status == "ok").all()
+    assert {"shear_angle_deg", "AOR_deg", "mass_lower_kg", "max_flowrate_kg_s"} <= set(out.columns)
+    fit = TwoStepRSM(SEED_FACTORS, criterion="aicc").fit(out, "shear_angle_deg")
+    assert set(fit.main_effects_) >= {"PP_SF", "PW_SF"}
+    # seeds depend on the run id only: same campaign seed -> same numbers
+    again = run_campaign(
+        _design(),
+        surrogate_drawdown,
+        tmp_path / "res2.csv",
+        seed=5,
+        executor=ThreadPoolExecutor(2),
+        progress=False,
+    )
+    pd.testing.assert_series_equal(out["shear_angle_deg"], again["shear_angle_deg"])
+    assert out.loc[0, "seed"] == run_seed(5, "1")
+
+
+class Flaky:
+    """Fails on runs whose PP_SF is 0.6 until ``healed``; counts calls (thread-safe)."""
+
+    def __init__(self) -> None:
+        self.healed = False
+        self.calls = 0
+        self.lock = threading.Lock()
+
+    def __call__(self, params, seed):
+        with self.lock:
+            self.calls += 1
+        if params["PP_SF"] == 0.6 and not self.healed:
+            raise RuntimeError("simulated crash")
+        return {"y": params["PP_SF"] + params["PW_SF"]}
+
+
+def test_resume_skips_finished_runs_and_retries_failed(tmp_path):
+    design = _design()
+    flaky = Flaky()
+    path = tmp_path / "res.csv"
+    first = run_campaign(design, flaky, path, executor=ThreadPoolExecutor(2), progress=False)
+    n_bad = int((design.PP_SF == 0.6).sum())
+    assert (first.status == "error").sum() == n_bad and flaky.calls == 21
+    assert first.loc[first.status == "error", "error"].str.contains("simulated crash").all()
+    assert first.loc[first.status == "error", "y"].isna().all()
+    flaky.healed = True
+    second = run_campaign(design, flaky, path, executor=ThreadPoolExecutor(2), progress=False)
+    assert flaky.calls == 21 + n_bad  # only the failed runs ran again
+    assert (second.status == "ok").all()
+    assert second["y"].tolist() == pytest.approx((design.PP_SF + design.PW_SF).tolist())
+    third = run_campaign(design, flaky, path, executor=ThreadPoolExecutor(2), progress=False)
+    assert flaky.calls == 21 + n_bad
+    assert third.equals(second)
+
+
+def test_dask_distributed_scheduler(tmp_path):
+    """The same campaign on a Dask cluster given by its scheduler address."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
+    ) as cluster:
+        out = run_campaign(
+            _design().head(6),
+            surrogate_drawdown,
+            tmp_path / "d.csv",
+            scheduler=cluster.scheduler_address,
+            progress=False,
+        )
+    assert len(out) == 6 and (out.status == "ok").all()
+
+
+def test_bad_campaign_inputs(tmp_path):
+    d = _design()
+    with pytest.raises(ValueError, match="non-empty"):
+        run_campaign(d.iloc[:0], surrogate_drawdown, tmp_path / "x.csv")
+    with pytest.raises(ValueError, match="unique"):
+        run_campaign(pd.concat([d, d]), surrogate_drawdown, tmp_path / "x.csv")
+    with pytest.raises(ValueError, match="lacks factor"):
+        run_campaign(d, surrogate_drawdown, tmp_path / "x.csv", factors=["nope"])
+    with pytest.raises(ValueError, match="either scheduler or executor"):
+        run_campaign(
+            d,
+            surrogate_drawdown,
+            tmp_path / "x.csv",
+            scheduler="tcp://x",
+            executor=ThreadPoolExecutor(1),
+        )
+    with pytest.raises(ValueError, match=r"\.csv or \.parquet"):
+        export_results(d, tmp_path / "x.txt")
+    assert export_results(d, tmp_path / "x.csv").exists()
+    try:
+        import pyarrow  # noqa: F401
+    except ImportError:
+        with pytest.raises(ValueError, match="pyarrow"):
+            export_results(d, tmp_path / "x.parquet")
