@@ -1,0 +1,196 @@
+"""Serializable compartment model of the continuous blender (wire/file contract).
+
+One open periodic section (compartments, holdups, sparse flow triplets, inlet and outlet
+compartments with their flows) plus the number of sections in series and the throughput
+basis.  The blender service loads it from JSON and calls :meth:`BlenderModel.predict` for the
+outlet concentration or :meth:`BlenderModel.impulse_response` for E(t), like an RTD model.
+The numerics live in ``twin_core.compartment`` (imported when a method is first called).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
+
+SCHEMA_VERSION = "1"
+
+
+class BlenderModel(BaseModel):
+    """Compartment model of a blender: ``n_sections`` identical open sections in series."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    schema_version: Literal["1"] = SCHEMA_VERSION
+    n_compartments: int = Field(gt=0, description="compartments of one section")
+    holdup_kg: list[float] = Field(description="holdup of each compartment of one section")
+    flow_src: list[int] = Field(description="flow triplets: source compartment")
+    flow_dst: list[int] = Field(description="flow triplets: destination compartment")
+    flow_kg_s: list[float] = Field(description="flow triplets: mass flow (kg/s)")
+    inlet_compartments: list[int] = Field(min_length=1)
+    inlet_kg_s: list[float] = Field(description="feed into each inlet compartment (kg/s)")
+    outlet_compartments: list[int] = Field(min_length=1)
+    outlet_kg_s: list[float] = Field(description="discharge of each outlet compartment (kg/s)")
+    n_sections: int = Field(default=8, ge=1)
+    coupling: Literal["mixing_cup"] = "mixing_cup"
+    throughput_kg_h: float = Field(gt=0, description="throughput basis of the flows")
+    rpm_basis: float | None = Field(default=None, gt=0)
+    section_length_m: float = Field(gt=0)
+    compartment_slice: list[int] | None = None
+    compartment_centroid_m: list[list[float]] | None = None
+    rsd_ss: float | None = None
+    rsd_0: float | None = None
+    k_b_per_s: float | None = None
+    source: str = ""
+    notes: dict[str, float | str] = Field(default_factory=dict)
+
+    _cdf_cache: dict = PrivateAttr(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _check(self) -> BlenderModel:
+        n = self.n_compartments
+        if len(self.holdup_kg) != n:
+            raise ValueError(
+                f"holdup_kg must have n_compartments={n} values, got {len(self.holdup_kg)}"
+            )
+        if any(not (h > 0) for h in self.holdup_kg):
+            raise ValueError("holdup_kg must be > 0")
+        m = len(self.flow_kg_s)
+        if len(self.flow_src) != m or len(self.flow_dst) != m:
+            raise ValueError(
+                f"flow_src, flow_dst, flow_kg_s must have equal length, got "
+                f"{len(self.flow_src)}, {len(self.flow_dst)}, {m}"
+            )
+        for name in ("flow_src", "flow_dst", "inlet_compartments", "outlet_compartments"):
+            idx = getattr(self, name)
+            if idx and (min(idx) < 0 or max(idx) >= n):
+                raise ValueError(f"{name} must lie in [0, {n}), got [{min(idx)}, {max(idx)}]")
+        for name in ("flow_kg_s", "inlet_kg_s", "outlet_kg_s"):
+            v = np.asarray(getattr(self, name), dtype=float)
+            if not np.all(np.isfinite(v)) or np.any(v < 0):
+                raise ValueError(f"{name} must be finite and >= 0")
+        if len(self.inlet_kg_s) != len(self.inlet_compartments):
+            raise ValueError("inlet_kg_s must have one value per inlet compartment")
+        if len(self.outlet_kg_s) != len(self.outlet_compartments):
+            raise ValueError("outlet_kg_s must have one value per outlet compartment")
+        bal = self._balance()
+        scale = max(float(np.max(self.flow_kg_s, initial=0.0)), sum(self.inlet_kg_s))
+        if np.abs(bal).max() > 1e-8 * scale:
+            raise ValueError(
+                f"flows must conserve mass: max |in - out| = {np.abs(bal).max():.3e} kg/s "
+                f"(compartment {int(np.argmax(np.abs(bal)))})"
+            )
+        q = sum(self.inlet_kg_s) * 3600.0
+        if abs(q - self.throughput_kg_h) > 1e-6 * self.throughput_kg_h:
+            raise ValueError(
+                f"throughput_kg_h={self.throughput_kg_h} differs from the total inlet flow {q} kg/h"
+            )
+        return self
+
+    def _balance(self) -> np.ndarray:
+        n = self.n_compartments
+        src = np.asarray(self.flow_src, dtype=np.int64)
+        dst = np.asarray(self.flow_dst, dtype=np.int64)
+        r = np.asarray(self.flow_kg_s, dtype=float)
+        bal = np.bincount(dst, weights=r, minlength=n) - np.bincount(src, weights=r, minlength=n)
+        bal[self.inlet_compartments] += np.asarray(self.inlet_kg_s)
+        bal[self.outlet_compartments] -= np.asarray(self.outlet_kg_s)
+        return bal
+
+    # ------------------------------------------------------------------ numerics
+    def section_network(self) -> Any:
+        """The open section as a ``twin_core.compartment.network.CompartmentNetwork``."""
+        from twin_core.compartment.network import CompartmentNetwork
+
+        n = self.n_compartments
+        feed = np.zeros(n)
+        np.add.at(feed, self.inlet_compartments, self.inlet_kg_s)
+        dis = np.zeros(n)
+        np.add.at(dis, self.outlet_compartments, self.outlet_kg_s)
+        return CompartmentNetwork(
+            holdup=np.asarray(self.holdup_kg),
+            src=np.asarray(self.flow_src, dtype=np.int64),
+            dst=np.asarray(self.flow_dst, dtype=np.int64),
+            rate=np.asarray(self.flow_kg_s),
+            feed=feed,
+            discharge=dis,
+            slice_index=None
+            if self.compartment_slice is None
+            else np.asarray(self.compartment_slice),
+        )
+
+    @property
+    def mean_residence_time_s(self) -> float:
+        """tau = n_sections x section holdup / throughput (s)."""
+        return self.n_sections * sum(self.holdup_kg) / (self.throughput_kg_h / 3600.0)
+
+    @property
+    def holdup_total_kg(self) -> float:
+        return self.n_sections * sum(self.holdup_kg)
+
+    def impulse_response(self, t: np.ndarray, n_sections: int | None = None) -> np.ndarray:
+        """E(t) (1/s) of the whole blender (or ``n_sections``) on a uniform grid from 0."""
+        from twin_core.compartment.blender import blender_rtd
+
+        n = self.n_sections if n_sections is None else n_sections
+        return blender_rtd(self.section_network(), n, np.asarray(t, dtype=float))
+
+    def predict(
+        self,
+        t: np.ndarray,
+        inlet_concentration: np.ndarray,
+        flow_scale: np.ndarray | None = None,
+        initial_concentration: float | None = None,
+    ) -> np.ndarray:
+        """Outlet concentration on the uniform grid t for a piecewise-constant inlet
+        concentration (same units out as in).
+
+        ``flow_scale`` (len(t)) scales every flow relative to the basis (rpm / rpm_basis or
+        throughput / throughput_kg_h with the holdup fixed); ``initial_concentration`` is the
+        blender content at t[0] (default: steady state at inlet_concentration[0]).
+        """
+        from twin_core.compartment.blender import blender_cdf_increments, predict_outlet
+
+        t = np.asarray(t, dtype=float)
+        sec = self.section_network()
+        cdf = None
+        if flow_scale is None and t.size >= 2:
+            key = (round(float(t[1] - t[0]), 12), t.size)
+            cdf = self._cdf_cache.get(key)
+            if cdf is None:
+                cdf = blender_cdf_increments(sec, self.n_sections, float(t[1] - t[0]), t.size)
+                self._cdf_cache.clear()
+                self._cdf_cache[key] = cdf
+        return predict_outlet(
+            sec,
+            self.n_sections,
+            t,
+            np.asarray(inlet_concentration, dtype=float),
+            flow_scale=flow_scale,
+            initial=initial_concentration,
+            cdf=cdf,
+        )
+
+    def rsd_profile(self, x_m: np.ndarray) -> np.ndarray:
+        """RSD along the blender axis by Eq. (10) (needs rsd_ss, rsd_0, k_b_per_s)."""
+        from twin_core.compartment.blender import blender_rsd_profile
+
+        if self.rsd_ss is None or self.rsd_0 is None or self.k_b_per_s is None:
+            raise ValueError("rsd_profile needs rsd_ss, rsd_0 and k_b_per_s in the model")
+        v_x = self.section_length_m * (self.throughput_kg_h / 3600.0) / sum(self.holdup_kg)
+        return blender_rsd_profile(x_m, self.rsd_ss, self.rsd_0, self.k_b_per_s, v_x)
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        path.write_text(self.model_dump_json(indent=1))
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> BlenderModel:
+        path = Path(path)
+        if not path.exists():
+            raise ValueError(f"model file {str(path)!r} does not exist")
+        return cls.model_validate_json(path.read_text())

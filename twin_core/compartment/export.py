@@ -1,0 +1,56 @@
+"""Export a fitted compartment model as the serializable :class:`schemas.blender_model.BlenderModel`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from twin_core.compartment.model import CompartmentModel
+
+
+def blender_model_fields(
+    model: CompartmentModel,
+    n_sections: int = 8,
+    rpm_basis: float | None = None,
+    rsd_fit: dict[str, float] | None = None,
+    source: str = "",
+) -> dict[str, Any]:
+    """Plain-data fields of a BlenderModel for the open section of ``model``."""
+    if n_sections < 1:
+        raise ValueError(f"n_sections must be >= 1, got {n_sections}")
+    sec = model.section_
+    inlet = np.flatnonzero(sec.feed > 0)
+    outlet = np.flatnonzero(sec.discharge > 0)
+    d: dict[str, Any] = {
+        "n_compartments": sec.n,
+        "holdup_kg": sec.holdup.tolist(),
+        "flow_src": sec.src.tolist(),
+        "flow_dst": sec.dst.tolist(),
+        "flow_kg_s": sec.rate.tolist(),
+        "inlet_compartments": inlet.tolist(),
+        "inlet_kg_s": sec.feed[inlet].tolist(),
+        "outlet_compartments": outlet.tolist(),
+        "outlet_kg_s": sec.discharge[outlet].tolist(),
+        "n_sections": n_sections,
+        "throughput_kg_h": float(sec.feed.sum() * 3600.0),
+        "rpm_basis": rpm_basis,
+        "section_length_m": model.section_length_m_,
+        "compartment_slice": model.slice_index_.tolist(),
+        "compartment_centroid_m": model.centroid_.tolist(),
+        "source": source,
+        "notes": {k: v for k, v in model.summary().items() if isinstance(v, (int, float, str))},
+    }
+    if rsd_fit is not None:
+        d["rsd_ss"] = rsd_fit["rsd_ss"]
+        d["rsd_0"] = rsd_fit["rsd_0"]
+        d["k_b_per_s"] = rsd_fit["k_b"]
+    return d
+
+
+def to_blender_model(model: CompartmentModel, **kwargs: Any) -> Any:
+    """The fitted model as a validated ``schemas.blender_model.BlenderModel``
+    (keyword arguments as in :func:`blender_model_fields`)."""
+    from schemas.blender_model import BlenderModel
+
+    return BlenderModel.model_validate(blender_model_fields(model, **kwargs))
