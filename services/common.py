@@ -1,0 +1,267 @@
+"""Shared machinery of the live services: history-keeping publishers, history-fetching
+subscribers, a single-threaded inbox, run-scoped state and an idempotent output log.
+
+Delivery guarantees. Publishers are zenoh *advanced* publishers with a sample cache
+(``LineSpec.history_samples`` per key) and ``CongestionControl.BLOCK``; subscribers are advanced
+subscribers that query that history when they (re)start and detect late publishers. A service
+restarted after a crash therefore receives everything its upstream published, recomputes its
+state deterministically, and suppresses the outputs it had already published (their ids are in
+an append-only log in the run's state directory): no output lost, none duplicated.
+
+Processing is single-threaded: zenoh callbacks validate (``services.bus.MessageValidator``:
+bad JSON / schema / time order counted and skipped) and enqueue; :meth:`LiveService.run`
+handles the queue in the main thread.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import zenoh
+import zenoh.ext as zext
+
+from schemas import keys as keys_mod
+from schemas.base import Message
+from schemas.line import LineSpec
+from services.bus import JSON, MessageValidator, Service
+
+log = logging.getLogger(__name__)
+
+#: environment variable naming the run's state directory (set by the supervisor)
+STATE_ENV = "TWIN_STATE_DIR"
+
+
+class HistoryPublisher:
+    """Publishes messages of one model on one key with a history cache (zenoh advanced publisher)."""
+
+    def __init__(
+        self, svc: Service, key: str, model: type[Message] | None, cache_samples: int
+    ) -> None:
+        keys_mod.parse_key(key)
+        self.key = key
+        self.model = model
+        self.counters = svc.counters
+        self.seq = 0
+        self._pub = zext.declare_advanced_publisher(
+            svc.session,
+            key,
+            encoding=JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            cache=zext.CacheConfig(max_samples=cache_samples),
+            sample_miss_detection=zext.MissDetectionConfig(heartbeat=0.5),
+            publisher_detection=True,
+        )
+
+    def publish(self, msg: Message | dict[str, Any]) -> Message:
+        """Validate (dicts) and send; ``seq`` defaults to the publisher's counter."""
+        if isinstance(msg, dict):
+            if self.model is None:
+                raise TypeError(f"publisher {self.key} has no model: pass a Message")
+            data = dict(msg)
+            data.setdefault("seq", self.seq)
+            msg = self.model.model_validate(data)
+        elif self.model is not None and not isinstance(msg, self.model):
+            raise TypeError(
+                f"message for {self.key} must be a {self.model.__name__}, got {type(msg).__name__}"
+            )
+        self._pub.put(msg.to_json_bytes())
+        self.seq = msg.seq + 1
+        self.counters.inc("published")
+        return msg
+
+    def put_raw(self, payload: bytes) -> None:
+        """Send a pre-encoded JSON payload (replay of recorded bytes)."""
+        self._pub.put(payload)
+        self.counters.inc("published")
+
+    def undeclare(self) -> None:
+        self._pub.undeclare()
+
+
+class HistorySubscriber:
+    """Validating subscriber that also fetches the publishers' history (advanced subscriber)."""
+
+    def __init__(
+        self,
+        svc: Service,
+        key_expr: str,
+        sink: Callable[[str, Any], None],
+        *,
+        model: type[Message] | None = None,
+        history_samples: int = 20000,
+    ) -> None:
+        # time order is restored by the service's catch-up sort and per-stream de-duplication:
+        # history may arrive after the first live samples
+        self.validator = MessageValidator(
+            svc.counters, model=model, name=svc.name, check_time=False
+        )
+        self.counters = svc.counters
+        self._sink = sink
+        self._sub = zext.declare_advanced_subscriber(
+            svc.session,
+            key_expr,
+            zenoh.handlers.Callback(self._on_sample, lambda: None),
+            history=zext.HistoryConfig(detect_late_publishers=True, max_samples=history_samples),
+            recovery=zext.RecoveryConfig(heartbeat=True),
+            subscriber_detection=True,
+        )
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        msg = self.validator.check(key, sample.payload.to_bytes())
+        if msg is None:
+            return
+        self.counters.inc("received")
+        self._sink(key, msg)
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+
+
+class OutputLog:
+    """Append-only log of output ids already published (idempotence across restarts)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.done: set[str] = set()
+        if path.exists():
+            # a torn last line (crash mid-write) is ignored: that output is sent again
+            lines = path.read_text().split("\n")
+            self.done = {ln for ln in lines[:-1] if ln}
+        self._f = path.open("a")
+
+    def __contains__(self, output_id: str) -> bool:
+        return output_id in self.done
+
+    def add(self, output_id: str) -> None:
+        self.done.add(output_id)
+        self._f.write(output_id + "\n")
+        self._f.flush()
+
+    def close(self) -> None:
+        self._f.close()
+
+
+def state_dir(spec: LineSpec) -> Path:
+    """The run's state directory: ``$TWIN_STATE_DIR`` (set by ``twin up``) or ``spec.state_dir``."""
+    return Path(os.environ.get(STATE_ENV) or spec.state_dir)
+
+
+class LiveService(Service):
+    """A service of the live twin: a :class:`services.bus.Service` plus an inbox processed in
+    the main thread, history publishers/subscribers and the run's state directory.
+
+    Subclasses implement :meth:`setup` (declare publishers/subscriptions), :meth:`handle`
+    (one validated message) and optionally :meth:`idle` (called when the inbox has been empty
+    for ``idle_s``) and :meth:`finish` (at shutdown).
+    """
+
+    idle_s: float = 0.2
+    #: seconds after start during which inputs (history and live) are collected, then handled
+    #: in plant-time order: the catch-up of a (re)started service
+    catchup_s: float = 1.0
+
+    def __init__(self, name: str, spec: LineSpec, *, install_signal_handlers: bool = True):
+        super().__init__(
+            name,
+            spec.client_bus(),
+            health_period_s=1.0,
+            install_signal_handlers=install_signal_handlers,
+        )
+        self.spec = spec
+        self.inbox: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+        self.state_path = state_dir(spec)
+
+    # -- declarations ------------------------------------------------------------------------
+    def history_publisher(self, key: str, model: type[Message] | None) -> HistoryPublisher:
+        pub = HistoryPublisher(self, key, model, self.spec.history_samples)
+        self._entities.append(pub)
+        return pub
+
+    def history_subscribe(self, key_expr: str, model: type[Message] | None = None) -> None:
+        sub = HistorySubscriber(
+            self,
+            key_expr,
+            self._enqueue,
+            model=model,
+            history_samples=self.spec.history_samples,
+        )
+        self._entities.append(sub)
+
+    def _enqueue(self, key: str, msg: Any) -> None:
+        t = getattr(msg, "t", None)
+        if t is not None and t > self.plant_time_s:
+            self.plant_time_s = t
+        self.inbox.put((key, msg))
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def setup(self) -> None:
+        """Declare publishers and subscriptions (session open)."""
+
+    def handle(self, key: str, msg: Any) -> None:
+        """Process one validated message."""
+
+    def idle(self) -> None:
+        """Called when no message arrived for ``idle_s``."""
+
+    def finish(self) -> None:
+        """Called once at shutdown, before the session closes."""
+
+    def run(self, timeout_s: float | None = None) -> int:
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        get = self.inbox.get
+        self._catch_up()
+        while not self.stopping:
+            try:
+                key, msg = get(timeout=self.idle_s)
+            except queue.Empty:
+                self.idle()
+                if deadline is not None and time.monotonic() >= deadline:
+                    break
+                continue
+            try:
+                self.handle(key, msg)
+            except Exception as exc:  # noqa: BLE001 - one bad message must not kill the service
+                self.counters.inc("handler_errors")
+                self.counters.last_error = f"{type(exc).__name__}: {exc}"[:500]
+                log.exception("%s: handling %s failed", self.name, key)
+        return 0
+
+    def _catch_up(self) -> None:
+        """Collect inputs for ``catchup_s``, then handle them sorted by plant time."""
+        end = time.monotonic() + self.catchup_s
+        batch: list[tuple[float, int, str, Any]] = []
+        while not self.stopping:
+            left = end - time.monotonic()
+            if left <= 0:
+                break
+            try:
+                key, msg = self.inbox.get(timeout=left)
+            except queue.Empty:
+                break
+            batch.append((float(getattr(msg, "t", 0.0)), len(batch), key, msg))
+        batch.sort(key=lambda x: (x[0], x[1]))
+        self.counters.inc("caught_up", len(batch))
+        for _, _, key, msg in batch:
+            try:
+                self.handle(key, msg)
+            except Exception as exc:  # noqa: BLE001
+                self.counters.inc("handler_errors")
+                self.counters.last_error = f"{type(exc).__name__}: {exc}"[:500]
+                log.exception("%s: handling %s failed", self.name, key)
+
+    def serve(self) -> int:
+        """Open, set up, run until SIGINT/SIGTERM, finish and close."""
+        with self:
+            self.setup()
+            try:
+                return self.run()
+            finally:
+                self.finish()

@@ -1,0 +1,235 @@
+"""OOS diverter service: OOS alerts with stable ids and divert commands.
+
+Thin shell over :class:`twin_core.online.OosDecider` (one per specified component):
+
+- inputs: feeder flows ``twin/<line>/feeder/*/flow`` (inlet composition, funnel early flag),
+  measured concentration ``twin/<line>/pat/<sensor>/concentration`` and, when the blender runs,
+  predictions ``twin/<line>/blender/outlet/predicted``; the three streams are merged in plant
+  time (:class:`twin_core.online.WatermarkMerger`) so decisions do not depend on arrival order;
+- traceability: outlet windows from ``twin_core.quality.lots.diversion_window`` with the blender
+  E(t) and the configured lot quantiles; funnel gain from the same E(t);
+- outputs: :class:`~schemas.messages.OosAlert` on ``twin/<line>/oos/alert`` (one per episode,
+  when its window is complete) and :class:`~schemas.messages.DivertCommand` on
+  ``twin/<line>/divert/command`` (``<alert>.open`` as soon as an episode is known, early for
+  feeder disturbances; ``<alert>.final`` with the final window).
+
+An ``Event`` of kind ``note`` with detail ``end-of-stream`` on ``twin/<line>/plant/replay/event``
+closes what is open (end of a replay). Restart: inputs come back from the publishers' history,
+the decisions are recomputed, and outputs already published (ids in the run's output log) are
+not sent again.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from schemas import keys
+from schemas.line import LineSpec
+from schemas.messages import (
+    DivertCommand,
+    Event,
+    FeederFlow,
+    MeasuredConcentration,
+    OosAlert,
+    PredictedConcentration,
+)
+from services.blender import blender_kernel
+from services.common import LiveService, OutputLog
+from twin_core.online import (
+    DiverterOutput,
+    InletAligner,
+    OosDecider,
+    WatermarkMerger,
+    composition_pct,
+    window_gain,
+)
+
+log = logging.getLogger(__name__)
+
+END_OF_STREAM = "end-of-stream"
+
+
+def replay_event_key(line: str) -> str:
+    """Key of the virtual plant's replay events (end of stream)."""
+    return keys.event(line, "plant", "replay")
+
+
+class OosCore:
+    """Stream logic of the diverter without the bus: feed messages, get outputs."""
+
+    def __init__(self, spec: LineSpec, e: np.ndarray | None = None) -> None:
+        from twin_core.quality.lots import diversion_window
+
+        self.spec = spec
+        dt = spec.dt_s
+        e = blender_kernel(spec) if e is None else np.asarray(e, float)
+        tk = np.arange(e.size) * dt
+        o = spec.oos
+        gain = window_gain(e / (dt * e.sum()), dt) if o.use_funnel else None
+
+        def window(a: float, b: float) -> tuple[float, float]:
+            return diversion_window(a, b, tk, e, o.lot_lower, o.lot_upper)
+
+        self.deciders: dict[str, OosDecider] = {
+            s.component: OosDecider(
+                line=spec.name,
+                component=s.component,
+                target=s.target_pct_w_w,
+                lower=s.lower_pct_w_w,
+                upper=s.upper_pct_w_w,
+                dt=dt,
+                gain=gain,
+                window=window,
+                n_on=o.n_on,
+                n_off=o.n_off,
+                hysteresis=o.hysteresis_pct_w_w,
+                inlet_detect=o.inlet_detect_pct_w_w,
+                inlet_n_on=o.inlet_n_on,
+                inlet_n_off=o.inlet_n_off,
+            )
+            for s in spec.spec
+        }
+        self.use_predicted = "blender" in spec.services
+        streams = ["inlet", "measured"] + (["predicted"] if self.use_predicted else [])
+        self.merger = WatermarkMerger(streams)
+        self.aligner = InletAligner([f.id for f in spec.feeders], dt)
+        self._last: dict[tuple[str, str], float] = {}
+        self.duplicates = 0
+
+    def _fresh(self, stream: str, sub: str, t: float) -> bool:
+        k = (stream, sub)
+        if t <= self._last.get(k, -1.0):
+            self.duplicates += 1
+            return False
+        self._last[k] = t
+        return True
+
+    def _process(self, released: list[tuple[str, float, Any]]) -> list[DiverterOutput]:
+        out: list[DiverterOutput] = []
+        for stream, t, item in released:
+            if stream == "inlet":
+                for comp, x in item.items():
+                    if comp in self.deciders:
+                        out += self.deciders[comp].inlet(t, x)
+            else:
+                comp, c = item
+                d = self.deciders.get(comp)
+                if d is not None:
+                    out += d.measured(t, c) if stream == "measured" else d.predicted(t, c)
+        return out
+
+    def flow(self, feeder: str, t: float, flow_kg_h: float) -> list[DiverterOutput]:
+        if not self._fresh("flow", feeder, t):
+            return []
+        out: list[DiverterOutput] = []
+        for tt, flows in self.aligner.push(feeder, t, flow_kg_h):
+            x = composition_pct(flows, self.spec.components)
+            out += self._process(self.merger.push("inlet", tt, x))
+        return out
+
+    def measured(self, component: str, t: float, c: float) -> list[DiverterOutput]:
+        if not self._fresh("measured", component, t):
+            return []
+        return self._process(self.merger.push("measured", t, (component, c)))
+
+    def predicted(self, component: str, t: float, c: float) -> list[DiverterOutput]:
+        if not self.use_predicted or not self._fresh("predicted", component, t):
+            return []
+        return self._process(self.merger.push("predicted", t, (component, c)))
+
+    def end_of_stream(self) -> list[DiverterOutput]:
+        out = self._process(self.merger.release_all())
+        for d in self.deciders.values():
+            out += d.flush()
+        return out
+
+
+def to_message(o: DiverterOutput, seq: int) -> OosAlert | DivertCommand:
+    """The wire message of a diverter output."""
+    if o.kind == "alert":
+        return OosAlert(
+            t=o.t,
+            seq=seq,
+            alert_id=o.id,
+            component=o.component,
+            t_start_s=o.t_start,
+            t_end_s=max(o.t_end, o.t_start),
+            peak_deviation_pct_w_w=o.peak_deviation,
+            limit_pct_w_w=o.limit,
+            cause=o.cause,
+        )
+    return DivertCommand(
+        t=o.t,
+        seq=seq,
+        command_id=o.id,
+        action="divert",
+        t_start_s=o.t_start,
+        t_end_s=max(o.t_end, o.t_start),
+        alert_id=o.alert_id,
+        reason=o.cause,
+    )
+
+
+class OosService(LiveService):
+    """See the module docstring."""
+
+    idle_release_s = 2.0
+
+    def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
+        super().__init__("oos", spec, **kwargs)
+        self.core = OosCore(spec)
+        self.log_ids = OutputLog(self.state_path / "oos.published")
+        self._idle = 0.0
+
+    def setup(self) -> None:
+        line = self.spec.name
+        self.alert_pub = self.history_publisher(keys.oos_alert(line), OosAlert)
+        self.divert_pub = self.history_publisher(keys.divert_command(line), DivertCommand)
+        self.history_subscribe(f"twin/{line}/feeder/*/flow", FeederFlow)
+        self.history_subscribe(
+            keys.measured_concentration(line, self.spec.sensor.id), MeasuredConcentration
+        )
+        if self.core.use_predicted:
+            self.history_subscribe(
+                keys.predicted_concentration(line, "outlet"), PredictedConcentration
+            )
+        self.history_subscribe(replay_event_key(line), Event)
+
+    def handle(self, key: str, msg: Any) -> None:
+        self._idle = 0.0
+        if isinstance(msg, FeederFlow):
+            outs = self.core.flow(keys.parse_key(key).id, msg.t, msg.mass_flow_kg_h)
+        elif isinstance(msg, MeasuredConcentration):
+            if msg.quality == "bad":
+                self.counters.inc("ignored_bad_quality")
+                return
+            outs = self.core.measured(msg.component, msg.t, msg.concentration_pct_w_w)
+        elif isinstance(msg, PredictedConcentration):
+            outs = self.core.predicted(msg.component, msg.t, msg.concentration_pct_w_w)
+        elif isinstance(msg, Event) and msg.kind == "note" and msg.detail == END_OF_STREAM:
+            outs = self.core.end_of_stream()
+        else:
+            return
+        self.emit(outs)
+
+    def emit(self, outs: list[DiverterOutput]) -> None:
+        for o in outs:
+            if o.id in self.log_ids:
+                self.counters.inc("suppressed_republish")
+                continue
+            pub = self.alert_pub if o.kind == "alert" else self.divert_pub
+            pub.publish(to_message(o, pub.seq))
+            self.log_ids.add(o.id)
+            self.counters.inc("alerts" if o.kind == "alert" else "divert_commands")
+
+    def idle(self) -> None:
+        # a stream that went quiet (e.g. no blender) must not hold decisions back forever
+        self._idle += self.idle_s
+        if self._idle >= self.idle_release_s and len(self.core.merger):
+            self.emit(self.core._process(self.core.merger.release_all()))
+
+    def finish(self) -> None:
+        self.log_ids.close()

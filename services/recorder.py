@@ -1,0 +1,72 @@
+"""Recorder service: everything on the line's bus (``twin/<line>/**``) to an MCAP file.
+
+Thin shell over ``services.recording.McapRecorder``: each valid message is written with its
+payload bytes as received, on the channel of its key, ``log_time`` = its plant time. Invalid
+payloads are counted (``services.bus.MessageValidator``) and not written. The file is
+``LineSpec.record_path`` (relative paths under the run directory), flushed periodically so a
+crash loses at most the last unflushed chunk, and finalized on SIGINT/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import zenoh
+import zenoh.ext as zext
+
+from schemas.line import LineSpec
+from services.bus import MessageValidator
+from services.common import LiveService
+
+
+class RecorderService(LiveService):
+    """See the module docstring."""
+
+    def __init__(self, spec: LineSpec, path: str | Path | None = None, **kwargs: Any) -> None:
+        super().__init__("recorder", spec, **kwargs)
+        p = Path(path or spec.record_path or "twin-live.mcap")
+        self.path = p if p.is_absolute() else self.state_path / p
+        self._lock = threading.Lock()
+        self.rec: Any = None
+
+    def setup(self) -> None:
+        from services.recording import McapRecorder
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.rec = McapRecorder(self.path, flush_every=2000, flush_period_s=1.0)
+        self.validator = MessageValidator(self.counters, name=self.name, check_time=False)
+        self._sub = zext.declare_advanced_subscriber(
+            self.session,
+            f"twin/{self.spec.name}/**",
+            zenoh.handlers.Callback(self._on_sample, lambda: None),
+            history=zext.HistoryConfig(
+                detect_late_publishers=True, max_samples=self.spec.history_samples
+            ),
+        )
+        self._entities.append(self._sub)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if "/service/" in key:
+            return  # health and liveliness are not plant data
+        payload = sample.payload.to_bytes()
+        msg = self.validator.check(key, payload)
+        if msg is None:
+            return
+        with self._lock:
+            if self.rec is not None:
+                self.rec.write(key, payload, float(msg.t), model=type(msg))
+                self.counters.inc("recorded")
+
+    def idle(self) -> None:
+        with self._lock:
+            if self.rec is not None:
+                self.rec.flush()
+
+    def finish(self) -> None:
+        with self._lock:
+            if self.rec is not None:
+                self.rec.close()
+                self.rec = None

@@ -1,0 +1,203 @@
+"""Supervisor of the live twin (``twin up``): router, service processes, restarts, clean stop.
+
+:class:`Supervisor` hosts the zenoh router (``LineSpec.bus``, ``mode: router``) in its own
+process, starts each configured service as a separate interpreter
+(``python -m services.runner NAME``; no fork of a process with zenoh open), watches the
+processes and their liveliness tokens (``twin/<line>/service/<name>/alive``), restarts a service
+that exits with exponential backoff (``backoff_s`` doubling up to ``max_backoff_s``, reset after
+``stable_s`` of uptime), and on :meth:`stop` (SIGINT/SIGTERM in ``twin up``) sends SIGTERM to all,
+waits ``stop_timeout_s``, kills what remains and closes the router.
+
+Each ``twin up`` gets a fresh run directory ``<state_dir>/run-<time>-<pid>`` (``$TWIN_STATE_DIR``
+of the services: restart state and output logs; ``<name>.log``: each service's output).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from schemas.line import LineSpec
+from services.bus import open_session
+from services.common import STATE_ENV
+
+log = logging.getLogger(__name__)
+
+SUPERVISED = ("feeder", "blender", "rtd", "oos", "recorder")
+
+
+@dataclass
+class Child:
+    """One supervised service process."""
+
+    name: str
+    proc: subprocess.Popen | None = None
+    started_at: float = 0.0
+    restarts: int = 0
+    backoff_s: float = 0.0
+    next_start: float = 0.0
+    exit_codes: list[int] = field(default_factory=list)
+
+
+class Supervisor:
+    """Starts, watches and stops the services of a line (see the module docstring)."""
+
+    def __init__(
+        self,
+        spec: LineSpec,
+        *,
+        services: list[str] | None = None,
+        run_dir: Path | None = None,
+        backoff_s: float = 0.5,
+        max_backoff_s: float = 10.0,
+        stable_s: float = 30.0,
+        stop_timeout_s: float = 5.0,
+        log_level: str = "INFO",
+    ) -> None:
+        self.spec = spec
+        names = [s for s in (services if services is not None else spec.services) if s != "plant"]
+        for s in names:
+            if s not in SUPERVISED:
+                raise ValueError(f"services must be among {SUPERVISED}, got {s!r}")
+        self.names = names
+        stamp = time.strftime("%Y%m%dT%H%M%S")
+        self.run_dir = run_dir or Path(spec.state_dir) / f"run-{stamp}-{os.getpid()}"
+        self.backoff_s = backoff_s
+        self.max_backoff_s = max_backoff_s
+        self.stable_s = stable_s
+        self.stop_timeout_s = stop_timeout_s
+        self.log_level = log_level
+        self.children = {n: Child(n) for n in names}
+        self.alive: set[str] = set()
+        self.session: zenoh.Session | None = None
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._liveliness: Any = None
+        self.config_path = self.run_dir / "line.json"
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def start(self) -> Supervisor:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.spec.to_file(self.config_path)
+        self.session = open_session(self.spec.router_bus())
+        self._liveliness = self.session.liveliness().declare_subscriber(
+            f"twin/{self.spec.name}/service/*/alive",
+            zenoh.handlers.Callback(self._on_alive, lambda: None),
+            history=True,
+        )
+        for child in self.children.values():
+            self._spawn(child)
+        self._thread = threading.Thread(target=self._watch, name="supervisor", daemon=True)
+        self._thread.start()
+        return self
+
+    def __enter__(self) -> Supervisor:
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).split("/")[-2]
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.alive.add(name)
+            else:
+                self.alive.discard(name)
+
+    def _spawn(self, child: Child) -> None:
+        env = dict(os.environ)
+        env[STATE_ENV] = str(self.run_dir)
+        logf = (self.run_dir / f"{child.name}.log").open("ab")
+        cmd = [
+            sys.executable,
+            "-m",
+            "services.runner",
+            child.name,
+            "--config",
+            str(self.config_path),
+            "--log-level",
+            self.log_level,
+        ]
+        child.proc = subprocess.Popen(
+            cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, start_new_session=True
+        )
+        logf.close()
+        child.started_at = time.monotonic()
+        log.info("started %s (pid %d)", child.name, child.proc.pid)
+
+    def _watch(self) -> None:
+        while not self._stop.wait(0.1):
+            now = time.monotonic()
+            for child in self.children.values():
+                p = child.proc
+                if p is not None and p.poll() is not None:
+                    child.exit_codes.append(p.returncode)
+                    up = now - child.started_at
+                    if up >= self.stable_s:
+                        child.backoff_s = 0.0
+                    child.backoff_s = (
+                        self.backoff_s
+                        if child.backoff_s == 0.0
+                        else min(2 * child.backoff_s, self.max_backoff_s)
+                    )
+                    child.next_start = now + child.backoff_s
+                    child.proc = None
+                    log.warning(
+                        "%s exited with %s after %.1f s; restart in %.1f s",
+                        child.name,
+                        p.returncode,
+                        up,
+                        child.backoff_s,
+                    )
+                if child.proc is None and now >= child.next_start and not self._stop.is_set():
+                    child.restarts += 1
+                    self._spawn(child)
+
+    def wait_ready(self, timeout_s: float = 60.0) -> bool:
+        """Wait until every service's liveliness token is alive."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                if set(self.names) <= self.alive:
+                    return True
+            time.sleep(0.05)
+        return False
+
+    def pids(self) -> dict[str, int | None]:
+        return {n: (c.proc.pid if c.proc else None) for n, c in self.children.items()}
+
+    def stop(self) -> dict[str, int | None]:
+        """SIGTERM every service, wait, SIGKILL what remains, close the router; exit codes."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        procs = {n: c.proc for n, c in self.children.items() if c.proc is not None}
+        for p in procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + self.stop_timeout_s
+        codes: dict[str, int | None] = {}
+        for n, p in procs.items():
+            try:
+                codes[n] = p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop in %.1f s: killing", n, self.stop_timeout_s)
+                p.kill()
+                codes[n] = p.wait()
+        if self.session is not None and not self.session.is_closed():
+            if self._liveliness is not None:
+                self._liveliness.undeclare()
+            self.session.close()
+        return codes

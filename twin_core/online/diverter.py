@@ -1,0 +1,226 @@
+"""OOS decisions of the diverter for one component: alerts and divert commands, deterministic.
+
+Three views of the outlet concentration are combined, all in plant time:
+
+1. **Feeder disturbances, traced** (early). The inlet composition (from the feeder flows) is
+   watched by a :class:`~twin_core.online.funnel.FunnelFlagger`: an inlet episode outside the
+   funnel's feasible region is flagged while it is still at the inlet. Its outlet window comes
+   from RTD traceability (lot boundaries: ``[t_in_start + t_lo, t_in_end + t_hi]``, Engisch &
+   Muzzio 2016). A ``divert`` command with the provisional window is issued at the flag, the
+   alert and the final ``divert`` window when the inlet episode ends.
+2. **Predicted outlet** (blender model) and 3. **measured outlet** (NIR): each through a
+   :class:`~twin_core.online.alerts.HysteresisTracker`. An episode that starts inside a traced
+   window is the same event (it confirms it, counted, no new alert). Otherwise it is an alert of
+   its own: ``divert`` from its start when it opens, alert and final window when it closes.
+
+Outputs carry stable ids derived from the data (``<line>.<component>.<source>-<start ms>``, with
+``.open``/``.final`` for commands), so replaying the same data gives the same outputs and a
+consumer (or a restarted diverter) can drop what it has already seen. Inputs must come in plant
+time order across the three streams (the service merges them by a watermark).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from twin_core.online.alerts import EpisodeEvent, HysteresisTracker
+from twin_core.online.funnel import FlagEvent, FunnelFlagger
+
+__all__ = ["DiverterOutput", "OosDecider"]
+
+
+@dataclass
+class DiverterOutput:
+    """An alert or a divert command decided at plant time ``t``.
+
+    ``kind``: ``alert`` (complete episode) or ``divert`` (window to send to waste).
+    ``id``: the alert id (alerts) or command id (divert); ``alert_id``: the alert it belongs to.
+    ``source``: ``feed`` (traced feeder disturbance), ``predicted`` or ``measured``.
+    """
+
+    kind: Literal["alert", "divert"]
+    t: float
+    id: str
+    alert_id: str
+    source: str
+    component: str
+    t_start: float
+    t_end: float
+    peak_deviation: float
+    limit: float
+    cause: str
+
+
+@dataclass
+class OosDecider:
+    """Alerts and divert commands for one component (see the module docstring).
+
+    Args:
+        line, component: used in ids and messages.
+        target, lower, upper: specification at the outlet, % w/w.
+        dt: tick of the inlet stream, s.
+        gain: ``window_gain`` of the blender E(t) on the inlet tick (funnel), or None to skip
+            the early feeder flag.
+        window: traceability ``(t_in_start, t_in_end) -> (t_out_start, t_out_end)``.
+        n_on, n_off, hysteresis: outlet episode debounce and deadband.
+        inlet_detect, inlet_n_on, inlet_n_off: inlet episode detector.
+    """
+
+    line: str
+    component: str
+    target: float
+    lower: float
+    upper: float
+    dt: float
+    gain: np.ndarray | None
+    window: Callable[[float, float], tuple[float, float]]
+    n_on: int = 3
+    n_off: int = 3
+    hysteresis: float = 0.05
+    inlet_detect: float = 0.3
+    inlet_n_on: int = 1
+    inlet_n_off: int = 3
+    confirmed_: dict[str, int] = field(default_factory=lambda: {"predicted": 0, "measured": 0})
+    _flagger: FunnelFlagger | None = field(init=False, repr=False)
+    _trackers: dict[str, HysteresisTracker] = field(init=False, repr=False)
+    _windows: list[list[float]] = field(default_factory=list, repr=False)
+    _own: dict[str, bool] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        base = f"{self.line}.{self.component}"
+        self._flagger = None
+        if self.gain is not None:
+            self._flagger = FunnelFlagger(
+                self.target,
+                self.lower,
+                self.upper,
+                self.gain,
+                self.dt,
+                self.window,
+                detect=self.inlet_detect,
+                n_on=self.inlet_n_on,
+                n_off=self.inlet_n_off,
+                prefix=f"{base}.feed",
+            )
+        self._trackers = {
+            src: HysteresisTracker(
+                self.lower, self.upper, self.hysteresis, self.n_on, self.n_off, f"{base}.{src}"
+            )
+            for src in ("predicted", "measured")
+        }
+
+    @property
+    def limit(self) -> float:
+        """Allowed absolute deviation (the tighter side), % w/w."""
+        return min(self.upper - self.target, self.target - self.lower)
+
+    # ------------------------------------------------------------------ inputs
+    def inlet(self, t: float, x_pct: float) -> list[DiverterOutput]:
+        """One inlet composition sample (% w/w of this component)."""
+        if self._flagger is None:
+            return []
+        return [o for ev in self._flagger.push(t, x_pct) for o in self._from_flag(ev)]
+
+    def predicted(self, t: float, c: float) -> list[DiverterOutput]:
+        """One predicted outlet concentration (% w/w)."""
+        return self._outlet("predicted", t, c)
+
+    def measured(self, t: float, c: float) -> list[DiverterOutput]:
+        """One measured outlet concentration (% w/w)."""
+        return self._outlet("measured", t, c)
+
+    def flush(self) -> list[DiverterOutput]:
+        """End of the streams: close what is open."""
+        out: list[DiverterOutput] = []
+        if self._flagger is not None:
+            for ev in self._flagger.flush():
+                out += self._from_flag(ev)
+        for src, tr in self._trackers.items():
+            for ev in tr.flush():
+                out += self._from_episode(src, ev)
+        return out
+
+    # ------------------------------------------------------------------ internals
+    def _from_flag(self, ev: FlagEvent) -> list[DiverterOutput]:
+        dev = ev.predicted_peak_deviation
+        cause = (
+            f"feeder disturbance of {self.component} at the inlet from {ev.t_in_start:.1f} s "
+            f"(peak {ev.peak_value:.3f} % w/w over {ev.n_samples} samples) is outside the "
+            f"funnel's feasible region: predicted outlet deviation {dev:+.3f} % w/w"
+        )
+        common = dict(
+            t=ev.t,
+            alert_id=ev.id,
+            source="feed",
+            component=self.component,
+            t_start=ev.t_out_start,
+            t_end=ev.t_out_end,
+            peak_deviation=dev,
+            limit=self.limit,
+            cause=cause,
+        )
+        if ev.kind == "flag":
+            self._windows.append([ev.t_out_start, math.inf])
+            return [DiverterOutput(kind="divert", id=f"{ev.id}.open", **common)]
+        for w in self._windows:
+            if w[0] == ev.t_out_start and math.isinf(w[1]):
+                w[1] = ev.t_out_end
+                break
+        return [
+            DiverterOutput(kind="alert", id=ev.id, **common),
+            DiverterOutput(kind="divert", id=f"{ev.id}.final", **common),
+        ]
+
+    def _covered(self, t: float) -> bool:
+        return any(a <= t <= b for a, b in self._windows)
+
+    def _outlet(self, src: str, t: float, c: float) -> list[DiverterOutput]:
+        out: list[DiverterOutput] = []
+        for ev in self._trackers[src].push(t, c):
+            out += self._from_episode(src, ev)
+        return out
+
+    def _from_episode(self, src: str, ev: EpisodeEvent) -> list[DiverterOutput]:
+        ep = ev.episode
+        if ev.kind == "open":
+            own = not self._covered(ep.t_start)
+            self._own[ep.id] = own
+            if not own:
+                self.confirmed_[src] += 1
+                return []
+        elif not self._own.pop(ep.id, False):
+            return []
+        dev = ep.peak_value - self.target
+        where = "NIR" if src == "measured" else "blender model"
+        cause = (
+            f"{src} outlet concentration of {self.component} ({where}) out of "
+            f"[{self.lower}, {self.upper}] % w/w, peak {ep.peak_value:.3f}; no traced feeder "
+            f"disturbance"
+        )
+        common = dict(
+            t=ev.t,
+            alert_id=ep.id,
+            source=src,
+            component=self.component,
+            t_start=ep.t_start,
+            t_end=ep.t_end,
+            peak_deviation=dev,
+            limit=self.limit,
+            cause=cause,
+        )
+        if ev.kind == "open":
+            self._windows.append([ep.t_start, math.inf])
+            return [DiverterOutput(kind="divert", id=f"{ep.id}.open", **common)]
+        for w in self._windows:
+            if w[0] == ep.t_start and math.isinf(w[1]):
+                w[1] = ep.t_end
+                break
+        return [
+            DiverterOutput(kind="alert", id=ep.id, **common),
+            DiverterOutput(kind="divert", id=f"{ep.id}.final", **common),
+        ]
