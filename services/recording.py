@@ -151,6 +151,10 @@ class McapRecorder:
             key, msg.to_json_bytes(), msg.t, publish_time_ns=publish_time_ns, model=type(msg)
         )
 
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """An MCAP metadata record (e.g. provenance of a synthetic recording)."""
+        self._writer.add_metadata(name=name, data={str(k): str(v) for k, v in data.items()})
+
     def flush(self) -> None:
         """Write the open chunk to the file (not fsync: covers a process crash)."""
         if self._since_flush:
