@@ -105,6 +105,9 @@ def cmd_build(args: argparse.Namespace) -> int:
 
     try:
         fields = load_fields(args.fields)
+        dem_samples = (
+            _load_transit_times(args.transit_times) if args.transit_times is not None else None
+        )
         variables = tuple(v.strip() for v in args.variables.split(",") if v.strip())
         t0 = time.perf_counter()
         model = CompartmentModel(
@@ -140,7 +143,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     validation = None
     samples = None
     if args.transit_times is not None:
-        samples = np.load(args.transit_times)
+        samples = dem_samples
         validation = "DEM transit times"
     elif fields.has_crossings and args.surrogate > 0:
         from twin_core.compartment.flows import cell_flows_from_crossings
@@ -164,6 +167,19 @@ def cmd_build(args: argparse.Namespace) -> int:
             args.figures, fields, model, t_rtd, e_sec, samples, validation, t_mix, rsd_t, fit, bm
         )
     return 0
+
+
+def _load_transit_times(path: Path) -> np.ndarray:
+    """Transit times (s) from a .npy array or an .npz holding ``transit_s``."""
+    if not path.exists():
+        raise ValueError(f"transit-times file {str(path)!r} does not exist")
+    data = np.load(path, allow_pickle=False)
+    if isinstance(data, np.lib.npyio.NpzFile):
+        with data:
+            if "transit_s" not in data.files:
+                raise ValueError(f"{path}: key 'transit_s' missing (keys: {data.files})")
+            return np.asarray(data["transit_s"], dtype=float)
+    return np.asarray(data, dtype=float)
 
 
 def _mixing_grid(model) -> np.ndarray:

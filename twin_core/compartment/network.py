@@ -335,16 +335,22 @@ def chain_sections(section: CompartmentNetwork, n_sections: int) -> CompartmentN
     )
 
 
-def first_passage_network(net: CompartmentNetwork, n_upstream: int = 2) -> CompartmentNetwork:
+def first_passage_network(
+    net: CompartmentNetwork, n_upstream: int = 2, entry: str = "record"
+) -> CompartmentNetwork:
     """Unwrapped periodic network for the first-passage time across one section length.
 
     Copies -n_upstream..0 of the periodic section are joined through their periodic faces in
     both directions; forward flow out of copy 0 is absorbed (discharge), backward flow out of
     the most upstream copy is removed (reflecting truncation, negligible for n_upstream >= 2).
-    The feed marks the entry distribution: forward flow into copy 0 through its inlet face.
-    This is the exact RTD of a particle that walks the network as a Markov chain and is
-    timed from crossing x = 0 to first crossing x = L (the DEM particle transit time).
+    The feed marks the entry distribution: ``entry="flux"`` the forward flow into copy 0
+    through its inlet face; ``entry="record"`` (default) the stationary law of the entry
+    state at record passages (:func:`record_entry`).  With "record" this is the exact RTD of
+    a particle walking the network as a Markov chain, timed between successive first
+    passages of new multiples of the section length (the DEM transit-time definition).
     """
+    if entry not in ("flux", "record"):
+        raise ValueError(f"entry must be 'flux' or 'record', got {entry!r}")
     fwd, bwd = _wrap_directions(net)
     n = net.n
     k = n_upstream + 1
@@ -366,15 +372,54 @@ def first_passage_network(net: CompartmentNetwork, n_upstream: int = 2) -> Compa
     dis[(k - 1) * n :] = np.bincount(net.src[fwd], weights=net.rate[fwd], minlength=n)
     feed = np.zeros(k * n)
     feed[(k - 1) * n :] = np.bincount(net.dst[fwd], weights=net.rate[fwd], minlength=n)
-    return CompartmentNetwork(
+    fp = CompartmentNetwork(
         holdup=np.tile(net.holdup, k),
         src=np.concatenate(src),
         dst=np.concatenate(dst),
         rate=np.concatenate(rate),
         feed=feed,
         discharge=dis,
-        meta={"n_upstream": n_upstream},
+        meta={"n_upstream": n_upstream, "entry": entry},
     )
+    if entry == "record":
+        p = record_entry(fp, net.dst[fwd], net.src[fwd], net.rate[fwd], n)
+        fp.feed = p * feed.sum()
+    return fp
+
+
+def record_entry(
+    fp: CompartmentNetwork,
+    land: np.ndarray,
+    leave: np.ndarray,
+    rate: np.ndarray,
+    n: int,
+    max_iter: int = 200,
+    tol: float = 1e-13,
+) -> np.ndarray:
+    """Stationary entry law at record passages of a first-passage network ``fp``.
+
+    Starting from an entry law p on the last copy, the time-integrated tracer is
+    (-A)^-1 p and the absorption flux through each forward periodic edge (leave -> land) is
+    rate / M_leave times it; the landing law is the next entry law.  Iterating this Markov
+    operator converges to its fixed point (power iteration).
+    """
+    from scipy.sparse.linalg import splu
+
+    A = fp.rate_matrix().tocsc()
+    lu = splu(-A)
+    off = fp.n - n
+    p = fp.feed / fp.feed.sum()
+    for _ in range(max_iter):
+        occ = lu.solve(p)
+        flux = rate / fp.holdup[off + leave] * occ[off + leave]
+        p_new = np.zeros(fp.n)
+        np.add.at(p_new, off + land, flux)
+        p_new /= p_new.sum()
+        if np.abs(p_new - p).sum() < tol:
+            p = p_new
+            break
+        p = p_new
+    return p
 
 
 def closed_network(net: CompartmentNetwork) -> CompartmentNetwork:

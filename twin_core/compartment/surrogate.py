@@ -71,28 +71,40 @@ def walk_transit_times(
     n_particles: int,
     seed: int | np.random.Generator | None = None,
     max_time: float | None = None,
+    burn_in: int = 2,
 ) -> np.ndarray:
-    """Transit times (s) of walkers from crossing x = 0 to first crossing x = L.
+    """Transit times (s) across one section length, as the DEM transit sensor measures them.
 
-    Walkers start in the first-slice nodes in proportion to the forward flow through the
-    periodic face (flux-weighted entry), walk the unwrapped periodic section and stop at their
-    first forward crossing of the face downstream.  Walkers still travelling at ``max_time``
-    (default 50 x V/Q) are returned as ``inf``.
+    A walker's unwrapped axial position advances by one period at each forward crossing of
+    the periodic face and goes back one at each backward crossing.  A *record* passage is the
+    first time it reaches a new multiple of the period; a transit time is the time between
+    two successive record passages (backflow included), the definition of the DEM
+    ``PeriodicTransitSensor``.  Walkers start at the flux-weighted forward crossings; the
+    first ``burn_in`` transits of each walker are discarded so that the entry state follows
+    the stationary record-passage law, and the next one is returned (one per walker, so the
+    samples are independent).  Walkers not done by ``max_time`` (default 50 x V/Q per
+    transit) are returned as ``inf``.
     """
     if n_particles < 1:
         raise ValueError(f"n_particles must be >= 1, got {n_particles}")
+    if burn_in < 0:
+        raise ValueError(f"burn_in must be >= 0, got {burn_in}")
     rng = np.random.default_rng(seed)
     ch = _Chain(net)
     if ch.entry.sum() <= 0:
         raise ValueError("network has no forward flow through the periodic face")
+    fwd, bwd = _wrap_directions(net)
+    q = net.rate[fwd].sum() - net.rate[bwd].sum()
+    if q <= 0:
+        raise ValueError(f"net flow through the periodic face must be > 0, got {q}")
     if max_time is None:
-        fwd, bwd = _wrap_directions(net)
-        q = net.rate[fwd].sum() - net.rate[bwd].sum()
-        max_time = 50.0 * net.total_holdup / max(q, 1e-300)
+        max_time = 50.0 * (burn_in + 1) * net.total_holdup / q
     p = ch.entry / ch.entry.sum()
     state = rng.choice(net.n, size=n_particles, p=p)
     offset = np.zeros(n_particles, dtype=np.int64)
+    best = np.zeros(n_particles, dtype=np.int64)
     time = np.zeros(n_particles)
+    t_rec = np.zeros(n_particles)
     out = np.full(n_particles, np.inf)
     alive = np.arange(n_particles)
     while alive.size:
@@ -101,10 +113,13 @@ def walk_transit_times(
         nxt, off = ch.jump(s, rng)
         offset[alive] += off
         state[alive] = nxt
-        done = offset[alive] >= 1
-        out[alive[done]] = time[alive[done]]
-        late = time[alive] > max_time
-        alive = alive[~done & ~late]
+        idx = alive[offset[alive] > best[alive]]  # record passages
+        best[idx] = offset[idx]
+        last = best[idx] == burn_in + 1
+        out[idx[last]] = time[idx[last]] - t_rec[idx[last]]
+        t_rec[idx] = time[idx]
+        keep = np.isinf(out[alive]) & (time[alive] <= max_time)
+        alive = alive[keep]
     return out
 
 

@@ -67,5 +67,5 @@ def compare_rtd(
     out["w1_s"] = float(np.trapezoid(dF, t))
     out["w1_rel"] = out["w1_s"] / mean_r
     out["mean_rel_err"] = (mean_m - mean_r) / mean_r
-    out["var_rel_err"] = (var_m - var_r) / var_r
+    out["var_rel_err"] = (var_m - var_r) / var_r if var_r > 0 else float("nan")
     return out

@@ -1,0 +1,118 @@
+"""Validation tools: particle-walk surrogate, RTD distances, RSD (Eq. 2) and Eq. (10)."""
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from twin_core.compartment import (
+    CompartmentModel,
+    CompartmentNetwork,
+    blender_rsd_profile,
+    compare_rtd,
+    first_passage_network,
+    fit_rsd_decay,
+    rsd,
+    rsd_decay,
+    section_rsd,
+    split_initial,
+    synthetic_blender_fields,
+)
+from twin_core.compartment.flows import cell_flows_from_crossings
+from twin_core.compartment.surrogate import cell_network, walk_transit_times
+
+
+@pytest.fixture(scope="module")
+def small():
+    case = synthetic_blender_fields(5, 7, 7)
+    model = CompartmentModel().fit(case.fields)
+    cells, _ = cell_network(case.fields, cell_flows_from_crossings(case.fields), model.mask_)
+    return case, model, cells
+
+
+def _cdf(t, e):
+    return np.concatenate([[0.0], np.cumsum(0.5 * (e[1:] + e[:-1]) * np.diff(t))])
+
+
+def test_walk_matches_its_exact_transit_time_law(small):
+    """The Gillespie walk samples the Markov chain whose record-passage transit law is the
+    first-passage network's E(t) (Norris 1997): a KS test must not reject it, and the mean
+    transit equals V/Q (renewal-reward theorem: net advance of one period per V/Q)."""
+    _, _, cells = small
+    tt = walk_transit_times(cells, 4000, seed=11)
+    assert np.all(np.isfinite(tt))
+    tau = cells.total_holdup / small[0].throughput_kg_s
+    t = np.linspace(0, 25 * tau, 5001)
+    e = first_passage_network(cells, 2).impulse_response(t)
+    p = stats.kstest(tt, lambda x: np.interp(x, t, _cdf(t, e))).pvalue
+    assert p > 1e-3
+    m = np.trapezoid(t * e, t)
+    assert m == pytest.approx(tau, rel=2e-3)
+    assert abs(tt.mean() - tau) < 4 * tt.std() / np.sqrt(tt.size)
+
+
+def test_compartment_rtd_against_surrogate(small):
+    """Compartment-model section RTD vs the exact particle-walk RTD (the DEM surrogate):
+    pinned so that a regression shows (honest numbers in docs/compartment.md)."""
+    _, model, cells = small
+    tau = model.mean_residence_time_s_
+    t = np.linspace(0, 25 * tau, 5001)
+    e_ref = first_passage_network(cells, 2).impulse_response(t)
+    r = compare_rtd(t, model.section_.impulse_response(t), e_ref=e_ref)
+    assert abs(r["mean_rel_err"]) < 0.02
+    assert -0.5 < r["var_rel_err"] < 0.1
+    assert r["w1_rel"] < 0.1 and r["ks"] < 0.1
+
+
+def test_compare_rtd_exponentials():
+    """Two exponential RTDs (tau 2 and 3): W1 = |tau1 - tau2| = 1 (CDFs ordered) and
+    KS = max |exp(-t/2) - exp(-t/3)| at t* = 6 ln 1.5."""
+    t = np.linspace(0, 200, 200001)
+    r = compare_rtd(t, np.exp(-t / 2) / 2, e_ref=np.exp(-t / 3) / 3)
+    assert r["w1_s"] == pytest.approx(1.0, rel=1e-4)
+    ts = 6 * np.log(1.5)
+    assert r["ks"] == pytest.approx(np.exp(-ts / 3) - np.exp(-ts / 2), rel=1e-4)
+    assert r["mean_rel_err"] == pytest.approx(-1 / 3, rel=1e-4)
+    samples = stats.expon(scale=3).rvs(20000, random_state=1)
+    rs = compare_rtd(t, np.exp(-t / 3) / 3, samples=samples)
+    assert abs(rs["model_mean"] - rs["ref_mean"]) < 4 * rs["ref_mean_se"]
+    with pytest.raises(ValueError, match="exactly one"):
+        compare_rtd(t, t, e_ref=t, samples=samples)
+
+
+def test_rsd_is_eq2():
+    """Eq. (2): sample standard deviation (N - 1) over the mean."""
+    c = np.array([[1.0, 2.0, 3.0, 6.0], [2.0, 2.0, 2.0, 2.0]])
+    np.testing.assert_allclose(rsd(c, axis=1), [np.std(c[0], ddof=1) / 3.0, 0.0])
+    np.testing.assert_allclose(rsd(c[0], weights=np.ones(4)), np.std(c[0], ddof=1) / 3.0)
+
+
+def test_closed_section_mixes_to_uniform_seed_flows_do_not(small):
+    """A conserving closed network mixes to a uniform concentration (its stationary law is
+    proportional to the holdups), so RSD -> 0; the seed's Eq. (1) flows break the balance and
+    leave a non-uniform steady state (an RSD plateau)."""
+    case, model, _ = small
+    c0 = split_initial(case.fields, model.labels_, axis=1)
+    assert 0 < c0.mean() < 1
+    t = np.linspace(0, 20 * model.mean_residence_time_s_, 41)
+    r = section_rsd(model.periodic_, c0, t)
+    assert r[0] > 0.5 and r[-1] < 1e-6
+    seed = model.seed_flows_
+    seed_net = CompartmentNetwork(model.holdup_kg_, seed.src, seed.dst, seed.rate)
+    r_seed = section_rsd(seed_net, c0, t)
+    assert r_seed[-1] > 0.05
+
+
+def test_fit_rsd_decay_recovers_parameters():
+    """Eq. (10), time form: a noisy profile with known RSD_ss, RSD_0, k_b is fitted back
+    within a few standard errors."""
+    t = np.linspace(0, 10, 200)
+    rng = np.random.default_rng(5)
+    y = rsd_decay(t, 0.1, 0.9, 0.8) + 0.003 * rng.standard_normal(t.size)
+    fit = fit_rsd_decay(t, y)
+    for k, v in (("rsd_ss", 0.1), ("rsd_0", 0.9), ("k_b", 0.8)):
+        assert abs(fit[k] - v) < 5 * fit[f"{k}_se"] + 1e-3
+    x = np.array([0.0, 1e3])
+    prof = blender_rsd_profile(x, 0.1, 0.9, 0.8, v_x=0.01)
+    np.testing.assert_allclose(prof, [0.9, 0.1], rtol=1e-9)
+    with pytest.raises(ValueError, match="v_x must be > 0"):
+        blender_rsd_profile(x, 0.1, 0.9, 0.8, v_x=0.0)
