@@ -433,8 +433,9 @@ class ModelSpec:
     params: tuple[str, ...]
     lower: tuple[float, ...]
     upper: tuple[float, ...]
-    guess: Callable[[float, float, float], tuple[float, ...]] = field(repr=False)
-    """guess(t_first, mean, std) from the profile's moments -> initial parameter vector."""
+    guess: Callable[[float, float, float], tuple | list[tuple]] = field(repr=False)
+    """guess(t_first, mean, std) from the profile's moments -> initial parameter vector, or a
+    list of them (multi-start; the fit keeps the lowest residual)."""
 
     def __call__(self, t: ArrayLike, *theta: float) -> NDArray:
         return self.func(t, *theta)
@@ -471,19 +472,26 @@ def _g_zus(t0: float, mean: float, std: float) -> tuple[float, ...]:
     return (tau_d, max(0.7 * (mean - tau_d), 1e-3), 3.0)
 
 
-def _g_dead(t0: float, mean: float, std: float) -> tuple[float, ...]:
+def _g_dead(t0: float, mean: float, std: float) -> list[tuple[float, ...]]:
     tau_d, tau, pe = _g_ad(t0, mean, std)
-    return (tau_d, tau * 0.9, pe, 0.1, max(std, 1e-3))
+    return [(tau_d, tau * 0.9, pe, r, max(k * std, 1e-3)) for r in (0.1, 0.5) for k in (0.3, 2.0)]
 
 
-def _g_adb(t0: float, mean: float, std: float) -> tuple[float, ...]:
-    tau_d, tau, pe = _g_ad(t0, mean, std)
-    return (tau_d, tau, pe, 0.05, max(0.2 * std, 1e-3))
+def _g_adb(t0: float, mean: float, std: float) -> list[tuple[float, ...]]:
+    # the bypass jumps at tau_d, so also start with tau_d at the onset of the profile
+    out = []
+    for td in {_g_ad(t0, mean, std)[0], 0.95 * t0}:
+        _, tau, pe = _g_ad(td, mean, std)
+        out += [(td, tau, pe, f, max(k * std, 1e-3)) for f in (0.05, 0.2) for k in (0.1, 0.5)]
+    return out
 
 
-def _g_tisb(t0: float, mean: float, std: float) -> tuple[float, ...]:
-    tau_d, tau, n = _g_tis(t0, mean, std)
-    return (tau_d, tau, n, 0.05, max(0.2 * std, 1e-3))
+def _g_tisb(t0: float, mean: float, std: float) -> list[tuple[float, ...]]:
+    out = []
+    for td in {_g_tis(t0, mean, std)[0], 0.95 * t0}:
+        _, tau, n = _g_tis(td, mean, std)
+        out += [(td, tau, n, f, max(k * std, 1e-3)) for f in (0.05, 0.2) for k in (0.1, 0.5)]
+    return out
 
 
 _INF = np.inf
