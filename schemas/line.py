@@ -25,6 +25,7 @@ __all__ = [
     "FeederLine",
     "LineSpec",
     "OosSettings",
+    "RtdSettings",
     "SensorLine",
     "SpecLimits",
     "SERVICE_NAMES",
@@ -119,6 +120,24 @@ class OosSettings(StrictModel):
     use_funnel: bool = True
 
 
+class RtdSettings(StrictModel):
+    """How the rtd service turns tracer pulses into RTD estimates.
+
+    detect: ``events`` (only announced ``tracer_pulse`` events) or ``auto`` (also pulses found in
+    the NIR signal); model: a ``twin_core.rtd.fitting`` model name (``ad_open``, ``tis``, ...);
+    denoise: a ``twin_core.rtd.denoise.denoise`` method (``none`` to skip); truncation_k: samples
+    below ``k`` baseline standard deviations are zeroed (seed: mu + 3 sigma); hampel_n_sigma:
+    outlier threshold of the Hampel identifier.
+    """
+
+    detect: Literal["events", "auto"] = "auto"
+    model: Ident = "ad_open"
+    denoise: Literal["none", "sa", "sa_centred", "sg", "fft", "wavelet", "auto"] = "wavelet"
+    truncation_k: NonNegative = 3.0
+    hampel_n_sigma: Positive = 4.0
+    max_duration_s: Positive = 300.0
+
+
 class LineSpec(StrictModel):
     """The whole live-twin configuration (see the module docstring)."""
 
@@ -129,6 +148,7 @@ class LineSpec(StrictModel):
     sensor: SensorLine
     spec: list[SpecLimits] = Field(min_length=1)
     oos: OosSettings = Field(default_factory=OosSettings)
+    rtd: RtdSettings = Field(default_factory=RtdSettings)
     bus: BusConfig = Field(
         default_factory=lambda: BusConfig(mode="router", listen=["tcp/127.0.0.1:7447"], connect=[])
     )

@@ -8,7 +8,8 @@ model of the declared line (``twin_core.plant.model``):
 one streaming convolution per component mass flow, the stream starting at steady state (the
 first flows). Subscribes ``twin/<line>/feeder/*/flow``; publishes one
 :class:`~schemas.messages.PredictedConcentration` per component per tick on
-``twin/<line>/blender/outlet/predicted``. With ``blender.adopt_rtd_estimates`` it replaces E(t)
+``twin/<line>/blender/outlet/predicted``. Announced tracer pulses (``tracer_pulse`` events with
+their mass) enter the inlet of their component as in the declared model. With ``blender.adopt_rtd_estimates`` it replaces E(t)
 by each RTD estimate the rtd service publishes (``twin/<line>/rtd/estimate``).
 
 A restarted blender recomputes from the flow history and does not publish a tick again: the last
@@ -25,7 +26,7 @@ import numpy as np
 
 from schemas import keys
 from schemas.line import LineSpec
-from schemas.messages import FeederFlow, PredictedConcentration, RtdEstimate
+from schemas.messages import Event, FeederFlow, PredictedConcentration, RtdEstimate
 from services.common import LiveService
 from twin_core.online import InletAligner, StreamingConvolver
 
@@ -71,6 +72,45 @@ class BlenderPredictor:
         self.e = blender_kernel(spec) if e is None else np.asarray(e, float)
         self.aligner = InletAligner(list(self.components), spec.dt_s)
         self.conv: dict[str, StreamingConvolver] | None = None
+        self._pulses: list[tuple[str, float, float, float]] = []  # component, t0, t1, kg/h
+        self._carry: dict[str, float] = {}  # tracer mass (as kg/h over one tick) not yet added
+        self._last_tick: float | None = None
+
+    def add_pulse(self, component: str, t_s: float, mass_kg: float, duration_s: float) -> None:
+        """A tracer pulse entering the inlet: ``mass_kg`` of ``component`` over
+        [t_s, t_s + duration_s), spread over the tick bins [t - dt/2, t + dt/2) it overlaps
+        (as ``twin_core.plant.model``); mass in bins already predicted goes to the next tick."""
+        if component not in self.comp_names or not duration_s > 0 or not mass_kg >= 0:
+            raise ValueError(
+                f"tracer pulse needs a known component and duration_s > 0, got {component!r}, "
+                f"{duration_s!r}"
+            )
+        rate_kg_h = mass_kg / duration_s * 3600.0
+        t1 = t_s + duration_s
+        if self._last_tick is not None:
+            edge = self._last_tick + 0.5 * self.spec.dt_s
+            missed = max(0.0, min(edge, t1) - t_s)
+            if missed > 0:
+                self._carry[component] = (
+                    self._carry.get(component, 0.0) + rate_kg_h * missed / self.spec.dt_s
+                )
+                t_s = min(edge, t1)
+        if t1 > t_s:
+            self._pulses.append((component, t_s, t1, rate_kg_h))
+
+    def _tracer(self, t: float, mass: dict[str, float]) -> None:
+        dt = self.spec.dt_s
+        lo, hi = t - 0.5 * dt, t + 0.5 * dt
+        keep = []
+        for comp, a, b, rate in self._pulses:
+            overlap = max(0.0, min(hi, b) - max(lo, a))
+            mass[comp] += rate * overlap / dt
+            if b > hi:
+                keep.append((comp, a, b, rate))
+        self._pulses = keep
+        for comp, q in self._carry.items():
+            mass[comp] += q
+        self._carry.clear()
 
     def set_kernel(self, e: np.ndarray) -> None:
         self.e = np.asarray(e, float)
@@ -85,9 +125,12 @@ class BlenderPredictor:
             mass = {c: 0.0 for c in self.comp_names}
             for f, q in flows.items():
                 mass[self.components[f]] += q
+            steady = dict(mass)
+            self._tracer(tt, mass)
+            self._last_tick = tt
             if self.conv is None:
                 self.conv = {
-                    c: StreamingConvolver(self.e, self.spec.dt_s, initial=mass[c])
+                    c: StreamingConvolver(self.e, self.spec.dt_s, initial=steady[c])
                     for c in self.comp_names
                 }
             y = {c: self.conv[c].push(mass[c]) for c in self.comp_names}
@@ -112,6 +155,7 @@ class BlenderService(LiveService):
             except ValueError:
                 self.last_published_t = -1.0
         self._n = 0
+        self._last_event_t = -1.0
 
     def setup(self) -> None:
         line = self.spec.name
@@ -119,10 +163,19 @@ class BlenderService(LiveService):
             keys.predicted_concentration(line, "outlet"), PredictedConcentration
         )
         self.history_subscribe(f"twin/{line}/feeder/*/flow", FeederFlow)
+        self.history_subscribe(f"twin/{line}/*/*/event", Event)
         if self.spec.blender.adopt_rtd_estimates:
             self.history_subscribe(keys.rtd_estimate(line), RtdEstimate)
 
     def handle(self, key: str, msg: Any) -> None:
+        if isinstance(msg, Event):
+            if msg.kind == "tracer_pulse" and msg.mass_kg and msg.t > self._last_event_t:
+                self._last_event_t = msg.t
+                comp = msg.component or msg.source
+                if comp in self.core.comp_names:
+                    self.core.add_pulse(comp, msg.t, msg.mass_kg, msg.duration_s or 1.0)
+                    self.counters.inc("tracer_pulses")
+            return
         if isinstance(msg, RtdEstimate):
             e = rtd_kernel(msg.model, dict(msg.params), self.spec.dt_s, self.spec.blender.kernel_s)
             self.core.set_kernel(e)

@@ -44,7 +44,6 @@ from twin_core.online import (
     OosDecider,
     WatermarkMerger,
     composition_pct,
-    window_gain,
 )
 
 log = logging.getLogger(__name__)
@@ -55,6 +54,15 @@ END_OF_STREAM = "end-of-stream"
 def replay_event_key(line: str) -> str:
     """Key of the virtual plant's replay events (end of stream)."""
     return keys.event(line, "plant", "replay")
+
+
+def funnel_gain(tk: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Funnel boundary M(d) = max_t [F(t) - F(t - d)] for d = m dt, m = 0..K
+    (``twin_core.quality.funnel.max_window_fraction``), indexed by the pulse length in ticks."""
+    from twin_core.quality.funnel import max_window_fraction
+
+    dt = float(tk[1] - tk[0])
+    return np.maximum.accumulate(max_window_fraction(tk, e, np.arange(tk.size + 1) * dt))
 
 
 class OosCore:
@@ -68,7 +76,7 @@ class OosCore:
         e = blender_kernel(spec) if e is None else np.asarray(e, float)
         tk = np.arange(e.size) * dt
         o = spec.oos
-        gain = window_gain(e / (dt * e.sum()), dt) if o.use_funnel else None
+        gain = funnel_gain(tk, e) if o.use_funnel else None
 
         def window(a: float, b: float) -> tuple[float, float]:
             return diversion_window(a, b, tk, e, o.lot_lower, o.lot_upper)

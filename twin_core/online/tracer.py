@@ -52,6 +52,7 @@ class TracerPulseDetector:
         tail_s: samples kept after the end criterion is met, s.
         max_duration_s: a segment is closed after this long in any case, s.
         min_sigma: floor of the noise estimate (a flat simulated baseline has MAD 0).
+        auto: detect pulses by the threshold rule; False: only announced pulses are segmented.
     """
 
     dt: float
@@ -64,6 +65,7 @@ class TracerPulseDetector:
     tail_s: float = 10.0
     max_duration_s: float = 600.0
     min_sigma: float = 1e-3
+    auto: bool = True
     _base: deque = field(init=False, repr=False)
     _pre: deque = field(init=False, repr=False)
     _seg_t: list = field(default_factory=list, repr=False)
@@ -117,7 +119,7 @@ class TracerPulseDetector:
             self._pre.append((t, c))
             base, sig = self.baseline()
             ready = len(self._base) >= max(3, self._base.maxlen // 2)
-            if ready and c > base + self.k_on * sig:
+            if self.auto and ready and c > base + self.k_on * sig:
                 self._run += 1
                 if self._run >= self.n_on:
                     self._level = (base, sig)

@@ -1,0 +1,337 @@
+"""The whole live twin on a recording: :func:`run_full_twin_demo`.
+
+Services up (supervised processes: feeder, blender, rtd, oos, recorder; a zenoh router on a
+free loopback port), the recording replayed at ``speed`` x real time by the virtual plant,
+alerts printed as they come, then a run report (``report.json`` and ``report.md``: messages,
+alerts, divert commands, RTD estimates, prediction error, timings, rejected messages) and a
+figure (``outlet.png``: measured vs predicted outlet concentration, alert windows shaded).
+
+The line configuration is derived from the recording (feeders and set points from the flows,
+sensor from the PAT channel, target = the set-point composition, limits 85-115 % of target) on
+top of ``services/configs/line1.yaml``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from schemas import keys
+from schemas.line import LineSpec
+from schemas.messages import (
+    DivertCommand,
+    FeederFlow,
+    MeasuredConcentration,
+    OosAlert,
+    PredictedConcentration,
+    RtdEstimate,
+    ServiceHealth,
+)
+
+log = logging.getLogger(__name__)
+
+BASE_CONFIG = Path(__file__).resolve().parent / "configs" / "line1.yaml"
+
+
+def free_port() -> int:
+    """A free TCP port on 127.0.0.1."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def spec_for_recording(rec: Any, port: int, state_dir: Path, base: Path = BASE_CONFIG) -> LineSpec:
+    """Line configuration matching a recording (see the module docstring)."""
+    data = LineSpec.from_file(base).model_dump()
+    setpoints: dict[str, tuple[str, float]] = {}
+    sensor: tuple[str, str] | None = None
+    line = None
+    for m in rec.messages:
+        k = keys.parse_key(m.key)
+        line = line or k.line
+        if k.signal == "flow" and k.id not in setpoints:
+            f = FeederFlow.model_validate_json(m.payload)
+            setpoints[k.id] = (f.component, f.setpoint_kg_h or f.mass_flow_kg_h)
+        elif k.signal == "concentration" and sensor is None:
+            c = MeasuredConcentration.model_validate_json(m.payload)
+            sensor = (c.sensor, c.component)
+        if sensor is not None and len(setpoints) >= 2 and m.t > 5:
+            break
+    if not setpoints or sensor is None:
+        raise ValueError(
+            f"recording must hold feeder flows and a PAT concentration, got feeders "
+            f"{sorted(setpoints)} and sensor {sensor}"
+        )
+    total = sum(q for _, q in setpoints.values())
+    target = 100.0 * sum(q for c, q in setpoints.values() if c == sensor[1]) / total
+    data.update(
+        name=line,
+        feeders=[
+            {"id": fid, "component": c, "setpoint_kg_h": q} for fid, (c, q) in setpoints.items()
+        ],
+        sensor={"id": sensor[0], "component": sensor[1], "sample_period_s": 1.0},
+        spec=[
+            {
+                "component": sensor[1],
+                "target_pct_w_w": round(target, 6),
+                "lower_pct_w_w": round(0.85 * target, 6),
+                "upper_pct_w_w": round(1.15 * target, 6),
+            }
+        ],
+        bus={"mode": "router", "listen": [f"tcp/127.0.0.1:{port}"], "connect": []},
+        services=["feeder", "blender", "rtd", "oos", "recorder"],
+        feeder_mode="replay",
+        state_dir=str(state_dir),
+        record_path="twin-demo.mcap",
+    )
+    return LineSpec.model_validate(data)
+
+
+class _Tap:
+    """Test-side view of the bus: everything the report needs."""
+
+    def __init__(self, spec: LineSpec, echo: bool) -> None:
+        import zenoh
+        import zenoh.ext as zext
+
+        from services.bus import open_session
+        from services.cli.live import format_alert
+
+        self.lock = threading.Lock()
+        self.alerts: dict[str, OosAlert] = {}
+        self.diverts: dict[str, DivertCommand] = {}
+        self.rtd: list[RtdEstimate] = []
+        self.health: dict[str, ServiceHealth] = {}
+        self.pred: dict[float, float] = {}
+        self.meas: dict[float, float] = {}
+        self.alert_wall: dict[str, float] = {}
+        self.duplicates = 0
+        self.session = open_session(spec.client_bus())
+        comp = spec.sensor.component
+        line = spec.name
+
+        def cb(model, sink):
+            def on(sample: zenoh.Sample) -> None:
+                msg = model.model_validate_json(sample.payload.to_bytes())
+                with self.lock:
+                    sink(msg)
+
+            return zenoh.handlers.Callback(on, lambda: None)
+
+        def on_alert(a: OosAlert) -> None:
+            if a.alert_id in self.alerts:
+                self.duplicates += 1
+                return
+            self.alerts[a.alert_id] = a
+            self.alert_wall[a.alert_id] = time.perf_counter()
+            if echo:
+                print(format_alert(a), flush=True)
+
+        def on_divert(d: DivertCommand) -> None:
+            if d.command_id in self.diverts:
+                self.duplicates += 1
+                return
+            self.diverts[d.command_id] = d
+
+        def on_pred(p: PredictedConcentration) -> None:
+            if p.component == comp:
+                self.pred[p.t] = p.concentration_pct_w_w
+
+        def on_meas(m: MeasuredConcentration) -> None:
+            self.meas[m.t] = m.concentration_pct_w_w
+
+        hist = zext.HistoryConfig(detect_late_publishers=True, max_samples=spec.history_samples)
+        self.subs = [
+            zext.declare_advanced_subscriber(
+                self.session, keys.oos_alert(line), cb(OosAlert, on_alert), history=hist
+            ),
+            zext.declare_advanced_subscriber(
+                self.session, keys.divert_command(line), cb(DivertCommand, on_divert), history=hist
+            ),
+            zext.declare_advanced_subscriber(
+                self.session,
+                keys.rtd_estimate(line),
+                cb(RtdEstimate, self.rtd.append),
+                history=hist,
+            ),
+            zext.declare_advanced_subscriber(
+                self.session,
+                keys.predicted_concentration(line, "outlet"),
+                cb(PredictedConcentration, on_pred),
+                history=hist,
+            ),
+            self.session.declare_subscriber(
+                keys.measured_concentration(line, spec.sensor.id),
+                cb(MeasuredConcentration, on_meas),
+            ),
+            self.session.declare_subscriber(
+                f"twin/{line}/service/*/health",
+                cb(ServiceHealth, lambda h: self.health.__setitem__(h.service, h)),
+            ),
+        ]
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()
+
+
+def _figure(path: Path, tap: _Tap, spec: LineSpec) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lim = spec.limits(spec.sensor.component)
+    fig, ax = plt.subplots(figsize=(11, 4.5))
+    tm = np.array(sorted(tap.meas))
+    tp = np.array(sorted(tap.pred))
+    if tm.size:
+        ax.plot(tm, [tap.meas[t] for t in tm], ".", ms=2, color="0.55", label="measured (NIR)")
+    if tp.size:
+        ax.plot(tp, [tap.pred[t] for t in tp], "-", lw=1.2, color="C0", label="predicted (blender)")
+    if lim is not None:
+        for v, ls in (
+            (lim.target_pct_w_w, "-"),
+            (lim.lower_pct_w_w, "--"),
+            (lim.upper_pct_w_w, "--"),
+        ):
+            ax.axhline(v, color="k", lw=0.8, ls=ls)
+    for i, a in enumerate(sorted(tap.alerts.values(), key=lambda a: a.t_start_s)):
+        ax.axvspan(
+            a.t_start_s,
+            a.t_end_s,
+            color="C3",
+            alpha=0.2,
+            label="OOS alert window" if i == 0 else None,
+        )
+    ax.set_xlabel("plant time (s)")
+    ax.set_ylabel(f"{spec.sensor.component} at the outlet (% w/w)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(f"Live twin of {spec.name}: measured vs predicted, alert windows shaded")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run_full_twin_demo(
+    recording: str | Path | None, out_dir: str | Path, speed: float = 200.0, echo: bool = True
+) -> dict[str, Any]:
+    """Run the live twin on ``recording`` (default: the bundled ``recordings/line1_30min.mcap``)
+    replayed at ``speed`` x real time (``inf``: as fast as the bus takes it); write
+    ``report.json``, ``report.md`` and ``outlet.png`` to ``out_dir``; return the report dict."""
+    from services.plant import Replayer
+    from services.recording import read_recording
+    from services.supervisor import Supervisor
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if recording is None:
+        recording = Path(__file__).resolve().parent.parent / "recordings" / "line1_30min.mcap"
+    t0 = time.perf_counter()
+    rec = read_recording(recording)
+    spec = spec_for_recording(rec, free_port(), out / "state")
+    sup = Supervisor(spec, backoff_s=0.5)
+    timings: dict[str, float] = {}
+    tap = None
+    try:
+        sup.start()
+        if not sup.wait_ready(90):
+            raise RuntimeError(f"services not ready after 90 s: alive {sorted(sup.alive)}")
+        timings["startup_s"] = time.perf_counter() - t0
+        tap = _Tap(spec, echo)
+        time.sleep(0.3)
+        with Replayer(
+            spec, rec, speed=speed, feeder_unit="loadcell", install_signal_handlers=False
+        ) as rp:
+            n_sent = rp.replay()
+            timings["replay_wall_s"] = rp.wall_s
+            last_t = rec.messages[-1].t if rec.messages else 0.0
+            t_wait = time.perf_counter()
+            while time.perf_counter() - t_wait < 30:
+                h = tap.health.get("oos")
+                if h is not None and h.t >= last_t and (tap.pred and max(tap.pred) >= last_t - 1):
+                    break
+                time.sleep(0.1)
+            timings["drain_s"] = time.perf_counter() - t_wait
+            time.sleep(1.5)  # publishers' heartbeat; end-of-stream decisions
+        health = {k: v.model_dump(mode="json") for k, v in tap.health.items()}
+    finally:
+        codes = sup.stop()
+        if tap is not None:
+            tap.close()
+    timings["total_s"] = time.perf_counter() - t0
+    common = sorted(set(tap.meas) & set(tap.pred))
+    err = np.array([tap.meas[t] - tap.pred[t] for t in common]) if common else np.array([])
+    alerts = sorted(tap.alerts.values(), key=lambda a: a.t_start_s)
+    span = rec.duration_s
+    report = {
+        "recording": str(recording),
+        "recording_status": rec.loss_report(),
+        "line": spec.name,
+        "spec": spec.limits(spec.sensor.component).model_dump(),
+        "messages_replayed": n_sent,
+        "plant_span_s": span,
+        "speed_requested": speed,
+        "speedup_achieved": span / timings["replay_wall_s"]
+        if timings["replay_wall_s"] > 0
+        else math.inf,
+        "predictions": len(tap.pred),
+        "prediction_error_pct_w_w": {
+            "n": int(err.size),
+            "bias": float(err.mean()) if err.size else None,
+            "rmse": float(np.sqrt(np.mean(err**2))) if err.size else None,
+            "mae": float(np.mean(np.abs(err))) if err.size else None,
+        },
+        "alerts": [a.model_dump(mode="json") for a in alerts],
+        "divert_commands": [d.model_dump(mode="json") for d in tap.diverts.values()],
+        "rtd_estimates": [r.model_dump(mode="json") for r in tap.rtd],
+        "duplicates_seen": tap.duplicates,
+        "service_health": health,
+        "exit_codes": codes,
+        "timings_s": timings,
+        "run_dir": str(sup.run_dir),
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    _figure(out / "outlet.png", tap, spec)
+    lines = [
+        f"# Live twin run on `{Path(str(recording)).name}`",
+        "",
+        f"- {rec.loss_report()}; {n_sent} messages, {span:.0f} s of plant time replayed in "
+        f"{timings['replay_wall_s']:.2f} s ({report['speedup_achieved']:.0f}x real time)",
+        f"- start-up {timings['startup_s']:.1f} s, total {timings['total_s']:.1f} s",
+        f"- predictions: {len(tap.pred)}; measured - predicted: "
+        + (
+            f"bias {report['prediction_error_pct_w_w']['bias']:+.3f}, "
+            f"RMSE {report['prediction_error_pct_w_w']['rmse']:.3f} % w/w"
+            if err.size
+            else "n/a"
+        ),
+        f"- OOS alerts: {len(alerts)}; divert commands: {len(tap.diverts)}; "
+        f"RTD estimates: {len(tap.rtd)}; duplicates seen: {tap.duplicates}",
+        "",
+        "| alert | outlet window (s) | peak deviation (% w/w) | cause |",
+        "|---|---|---|---|",
+    ]
+    for a in alerts:
+        lines.append(
+            f"| {a.alert_id} | {a.t_start_s:.1f} - {a.t_end_s:.1f} | "
+            f"{a.peak_deviation_pct_w_w:+.3f} | {a.cause} |"
+        )
+    for r in tap.rtd:
+        ps = ", ".join(f"{k}={v:.3g}" for k, v in r.params.items())
+        lines.append(
+            f"\nRTD estimate (pulse at {r.pulse_t_s} s): {r.model} {ps}, "
+            f"mean residence time {r.mean_residence_time_s:.1f} s"
+        )
+    lines += ["", "![outlet](outlet.png)", ""]
+    (out / "report.md").write_text("\n".join(lines))
+    return report
