@@ -139,7 +139,7 @@ def test_disturbance_step_reaches_new_composition():
     c = run.outlet_true_pct_w_w["api"]
     assert c[50] == pytest.approx(10.0)
     assert c[-1] == pytest.approx(100 * 1.8 / 12.6, rel=1e-4)
-    assert [e.kind for e in run.events] == ["disturbance_start"]
+    assert [e.kind for e in run.events] == ["disturbance"]
 
 
 def test_rtd_effects_conserve_mass_and_shift_mean():

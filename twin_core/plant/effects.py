@@ -195,21 +195,24 @@ class DeadZone(Effect):
 
 @register
 class Bypass(Effect):
-    """A fraction of the flow short-circuits the blender with the transport delay only.
+    """A fraction of the flow short-circuits the blender: transport delay and a small mixed
+    volume only.
 
-    E'(t) = (1 - b) E(t) + b delta(t - tau_d)
+    E'(t) = (1 - b) E(t) + b k_b(t - tau_d),  k_b(t) = exp(-t / tau_b) / tau_b, t > 0
 
-    (Levenspiel ch. 12, "bypass" combined with the plug-flow delay of the declared model;
-    tau_d from the blender spec). Shows as an early spike in the tracer response.
+    (Levenspiel ch. 12, "bypass" in parallel with the active volume; the bypass stream keeps
+    the plug-flow delay tau_d of the declared model and the short mixing time
+    ``BYPASS_TAU_S`` = 3 s of the outlet chute). Shows as an early peak in tracer responses.
     """
 
     name = "bypass"
     stage = "rtd"
     order = 3
-    doc = "fraction b of the flow passes the blender after only the plug-flow delay"
+    doc = "fraction b of the flow passes the blender after only the plug-flow delay (+3 s mixing)"
     params = (
         ParamSpec("fraction", 0.0, 0.0, 0.8, "1", "bypassing fraction of the flow", (0.05, 0.2)),
     )
+    BYPASS_TAU_S: ClassVar[float] = 3.0
 
     def apply_rtd(self, tk: np.ndarray, e: np.ndarray, blender: BlenderSpec) -> np.ndarray:
         b = self.values["fraction"]
@@ -224,7 +227,7 @@ class Bypass(Effect):
             spike[i] += (1.0 - w) / dt
         if i + 1 < spike.size:
             spike[i + 1] += w / dt
-        return (1.0 - b) * e + b * spike
+        return (1.0 - b) * e + b * _exp_kernel_conv(tk, spike, self.BYPASS_TAU_S)
 
 
 @register
@@ -305,12 +308,11 @@ class RefillSurge(Effect):
 
 
 def _refill_shape(refilling: np.ndarray, decay: float) -> np.ndarray:
-    out = np.empty(refilling.size)
-    prev = 0.0
-    for i, r in enumerate(refilling):
-        prev = 1.0 if r else prev * decay
-        out[i] = prev
-    return out
+    """s[n] = 1 while refilling, decay^(n - last refill sample) after, 0 before any refill."""
+    idx = np.arange(refilling.size)
+    last = np.maximum.accumulate(np.where(refilling, idx, -1))
+    with np.errstate(over="ignore", under="ignore"):
+        return np.where(last >= 0, decay ** (idx - np.maximum(last, 0)), 0.0)
 
 
 @register

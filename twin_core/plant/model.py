@@ -10,7 +10,7 @@ flow, so the outlet mass flows are (E * m_i)(t) and the outlet mass fraction is
 section modeling of convective continuous powder mixing processes" / Engisch & Muzzio 2012 for
 RTD-based composition prediction; the seed's Eq. (6) of 6.2 for the convolution). The line
 starts full at the composition of the first sample (the history before t_s[0] is the first
-sample repeated for ``warmup_s``). The NIR signal is the measured component's c_i plus the
+sample extended to the past, added analytically). The NIR signal is the measured component's c_i plus the
 declared baseline offset of the sensor; the sensor noise (``twin_core.plant.nir``) is not part
 of the prediction.
 
@@ -20,7 +20,6 @@ delivered flows, rtd effects change E(t), sensor effects change the signal.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -127,42 +126,35 @@ def outlet_concentration(
     inputs: LineInputs,
     blender: BlenderSpec,
     effects: Sequence[Effect] = (),
-    warmup_s: float | None = None,
 ) -> dict[str, np.ndarray]:
     """Outlet mass fraction of every component, % w/w, c_i = 100 (E*m_i)/(E*sum m).
 
-    Uses ``twin_core.rtd.convolution.convolve`` on a grid extended backwards by ``warmup_s``
-    (default: 600 s, or more for slow rtd effects) filled with the first sample of the feeder
-    flows (no tracer).
+    The convolution runs on ``inputs.t_s`` with ``twin_core.rtd.convolution.convolve``
+    (rectangle rule, y[n] = dt sum_j u[j] E[n-j]). Before t_s[0] the line is at steady state
+    with the first feeder flows m_i0 (no tracer): that history adds exactly
+    m_i0 S(t), S[n] = 1 - dt sum_{j<=n} E[j] (the fraction of the older material still inside,
+    1 - F(t)), so the line starts full and no warm-up padding is needed.
     """
     from twin_core.rtd.convolution import convolve
 
     t = inputs.t_s
     dt = inputs.dt_s
-    if warmup_s is None:
-        warmup_s = 600.0
-        for e in effects:
-            if e.name == "dead_zone":
-                warmup_s = max(warmup_s, 6.0 * e.values["tau_s"])
-    n_pad = int(math.ceil(warmup_s / dt))
     feed, tracer = _inlet_parts(inputs, effects)
-    comp = inlet_component_flows(inputs, effects)
-    n = t.size + n_pad
-    tg = np.arange(n) * dt
+    comp = {c: np.asarray(q, dtype=float) for c, q in feed.items()}
+    for c, q in tracer.items():
+        comp[c] = comp.get(c, np.zeros_like(t)) + q
+    tg = t - t[0]
     e_t = rtd_kernel(blender, tg, effects)
+    survival = np.clip(1.0 - dt * np.cumsum(e_t), 0.0, None)
     outs: dict[str, np.ndarray] = {}
-    total = np.zeros(n)
+    total = np.zeros(t.size)
     for c, q in comp.items():
         q0 = float(np.atleast_1d(feed.get(c, 0.0))[0])  # steady history: feeders, no tracer
-        qp = np.concatenate([np.full(n_pad, q0), q])
-        y = np.asarray(convolve(tg, qp, e_t), dtype=float)
+        y = np.asarray(convolve(tg, q, e_t), dtype=float) + q0 * survival
         outs[c] = y
         total = total + y
     with np.errstate(invalid="ignore", divide="ignore"):
-        return {
-            c: np.where(total[n_pad:] > 0, 100.0 * y[n_pad:] / total[n_pad:], np.nan)
-            for c, y in outs.items()
-        }
+        return {c: np.where(total > 0, 100.0 * y / total, np.nan) for c, y in outs.items()}
 
 
 def sensor_signal(

@@ -58,7 +58,8 @@ class FeederRecord:
 @dataclass
 class Event:
     """Something that happened at ``t_s``: kind in {refill_start, refill_stop, tracer_pulse,
-    disturbance_start, disturbance_stop}; ``source`` the feeder/component; ``detail`` values."""
+    disturbance, disturbance_end} (the wire contract's
+    ``schemas.messages.EventKind`` names); ``source`` the feeder/component; ``detail`` values."""
 
     t_s: float
     kind: str
@@ -213,9 +214,9 @@ def simulate_line(
         rec = feeders[d.feeder]
         on = (t >= d.t_s) & (t < d.t_s + d.duration_s)
         rec.flow_kg_h = np.maximum(rec.flow_kg_h + np.where(on, d.delta_kg_h, 0.0), 0.0)
-        events.append(Event(d.t_s, "disturbance_start", d.feeder, {"delta_kg_h": d.delta_kg_h}))
+        events.append(Event(d.t_s, "disturbance", d.feeder, {"delta_kg_h": d.delta_kg_h}))
         if math.isfinite(d.duration_s):
-            events.append(Event(d.t_s + d.duration_s, "disturbance_stop", d.feeder))
+            events.append(Event(d.t_s + d.duration_s, "disturbance_end", d.feeder))
     for p in config.tracers:
         events.append(
             Event(

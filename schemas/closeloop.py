@@ -1,0 +1,126 @@
+"""Report of ``twin close-loop``: effects found, errors before/after, decision and diagnostics.
+
+Written by ``twin_core.closeloop.CloseLoopResult.to_dict()`` and validated with
+:class:`CloseLoopReport` before it is written as JSON. Concentrations are % w/w, times s.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import Field
+
+from schemas.base import Finite, NonNegative, StrictModel
+
+__all__ = [
+    "CandidateScore",
+    "CloseLoopReport",
+    "Decision",
+    "EffectFound",
+    "ErrorPair",
+    "Errors",
+    "ParamEstimate",
+    "Windows",
+    "WindowError",
+]
+
+
+class ParamEstimate(StrictModel):
+    """A fitted parameter with its standard error and 95 % interval (clipped to bounds)."""
+
+    name: str
+    value: Finite
+    stderr: NonNegative | None = None
+    ci95_low: Finite | None = None
+    ci95_high: Finite | None = None
+    unit: str
+    lower: Finite
+    upper: Finite
+
+
+class EffectFound(StrictModel):
+    """An effect claimed: registry name, target feeder (feeder effects), parameters, scores
+    of the step that accepted it."""
+
+    name: str
+    target: str | None = None
+    label: str
+    params: list[ParamEstimate]
+    delta_bic: Finite | None = None
+    heldout_rel_improvement: Finite | None = None
+    lr_z: Finite | None = None
+    p_value: Finite | None = Field(None, ge=0.0, le=1.0)
+
+
+class WindowError(StrictModel):
+    rmse: NonNegative
+    mae: NonNegative
+    n: int = Field(ge=0)
+
+
+class ErrorPair(StrictModel):
+    train: WindowError
+    heldout: WindowError
+
+
+class Errors(StrictModel):
+    """RMSE and MAE of measured - predicted (% w/w, Hampel outliers replaced)."""
+
+    before: ErrorPair
+    after: ErrorPair
+
+
+class Windows(StrictModel):
+    split: Literal["tail", "blocks"]
+    description: str
+    train_s: list[Finite] = Field(min_length=2, max_length=2)
+    heldout_s: list[Finite] = Field(min_length=2, max_length=2)
+    n_train: int = Field(ge=0)
+    n_heldout: int = Field(ge=0)
+
+
+class Decision(StrictModel):
+    alpha: float = Field(gt=0.0, lt=1.0)
+    min_improvement: Finite
+    max_effects: int = Field(ge=0)
+    test: str
+    unexplained_nmse: Finite
+    outliers_removed: int = Field(ge=0)
+
+
+class CandidateScore(StrictModel):
+    """One candidate tried at one step of the forward search."""
+
+    label: str
+    params: dict[str, Finite]
+    delta_bic: Finite | None = None
+    heldout_rel_improvement: Finite | None = None
+    lr_z: Finite | None = None
+    p_value: Finite | None = None
+    dm_stat: Finite | None = None
+    dm_p_value: Finite | None = None
+    claimable: bool
+    converged: bool
+
+
+class CloseLoopReport(StrictModel):
+    """The close-loop report (JSON)."""
+
+    version: int = 1
+    recording: str
+    line: str
+    sensor_component: str
+    status: Literal["explained", "unexplained", "consistent"] = Field(
+        description="explained: effects claimed; unexplained: residual beyond the declared "
+        "noise but no effect passes the test; consistent: residual explained by the noise"
+    )
+    effects: list[EffectFound]
+    errors: Errors
+    windows: Windows
+    decision: Decision
+    candidates: list[list[CandidateScore]]
+    diagnostics_before: dict[str, Any]
+    diagnostics_after: dict[str, Any]
+    augmented_model: dict[str, Any]
+    n_model_evaluations: int = Field(ge=0)
+    figures: list[str] = Field(default_factory=list)
