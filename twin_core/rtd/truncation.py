@@ -29,6 +29,7 @@ __all__ = [
     "pat_level",
     "truncate_pat",
     "two_peak_profiles",
+    "baseline_correct",
     "TruncationSpec",
     "parse_spec",
 ]
@@ -91,6 +92,13 @@ def truncate_pat(t: ArrayLike, y: ArrayLike, k: float = 3.0, t_baseline: float =
     """PAT-based truncation: zero every sample below mu + k sigma of the baseline window."""
     lvl, _, _ = pat_level(t, y, k, t_baseline)
     return truncate_level(y, max(lvl, 0.0))
+
+
+def baseline_correct(t: ArrayLike, y: ArrayLike, t_baseline: float = 120.0) -> NDArray[np.float64]:
+    """Subtract the mean of the baseline window t >= t_baseline (a PAT offset; not part of the
+    seed's workflow, offered because the offset biases the area and hence E)."""
+    _, mu, _ = pat_level(t, y, 0.0, t_baseline)
+    return _y(y) - mu
 
 
 def two_peak_profiles(
