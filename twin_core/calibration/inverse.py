@@ -168,10 +168,17 @@ class InverseCalibration:
         return {k: float(m.predict(vals)[0]) for k, m in self.models.items()}
 
     def _residuals(self, u: np.ndarray, targets: np.ndarray, keys: list[str]) -> np.ndarray:
-        vals = self._values(self._theta(u))
-        return np.array(
-            [(self.models[k].predict(vals)[0] - t) / self.scales[k] for k, t in zip(keys, targets)]
-        )
+        theta = self._theta(u)
+        point = {**self.fixed, **{n: float(v) for n, v in zip(self.names, theta)}}
+        out = np.empty(len(keys))
+        for i, (k, t) in enumerate(zip(keys, targets)):
+            m = self.models[k]
+            if hasattr(m, "predict_point"):
+                pred = m.predict_point(point)
+            else:
+                pred = m.predict({a: [b] for a, b in point.items()})[0]
+            out[i] = (pred - t) / self.scales[k]
+        return out
 
     def _cost_vec(self, u: np.ndarray, targets: np.ndarray, keys: list[str]) -> np.ndarray:
         """0.5 sum r^2 for many points at once: u has shape (d, S)."""
@@ -310,8 +317,8 @@ class InverseCalibration:
                     self._de_objective(tv, keys),
                     [(0.0, 1.0)] * d,
                     seed=rng,
-                    tol=1e-12,
-                    maxiter=300,
+                    tol=1e-8,
+                    maxiter=200,
                     polish=False,
                     init="sobol",
                     vectorized=True,

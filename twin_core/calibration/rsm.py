@@ -178,6 +178,7 @@ class ResponseSurface:
         pval = 2.0 * stats.t.sf(np.abs(tval), dfe)
         names = ["Intercept"] + [term_name(t) for t in terms]
         self.coef_ = pd.Series(beta, index=names)
+        self._coef_list = [float(b) for b in beta]
         self.stderr_ = pd.Series(se, index=names)
         self.tvalues_ = pd.Series(tval, index=names)
         self.pvalues_ = pd.Series(pval, index=names)
@@ -229,6 +230,20 @@ class ResponseSurface:
             return np.full(n, float(self.coef_.iloc[0]))
         x = _design_matrix(data, self.terms_, self.centers_)
         return x @ self.coef_.to_numpy()
+
+    def predict_point(self, values: Mapping[str, float]) -> float:
+        """Prediction at one point given as scalars (fast path for solvers)."""
+        coef = self._coef_list
+        out = coef[0]
+        for t, b in zip(self.terms_, coef[1:]):
+            if len(t) == 1:
+                out += b * values[t[0]]
+            else:
+                v = b
+                for f in t:
+                    v *= values[f] - self.centers_[f]
+                out += v
+        return out
 
     def prediction_variance(
         self, data: pd.DataFrame | Mapping[str, float | Sequence[float]]
