@@ -146,10 +146,21 @@ def fit(
             return w * (x[-1] * spec.func(tt, *x[:-1]) - yy)
         return w * (spec.func(tt, *x) - yy)
 
+    def jac(x: NDArray) -> NDArray:
+        if scale == "free":
+            j = spec.jac(tt, *x[:-1])  # type: ignore[misc]
+            return w[:, None] * np.column_stack([x[-1] * j, spec.func(tt, *x[:-1])])
+        return w[:, None] * spec.jac(tt, *x)  # type: ignore[misc]
+
     res = None
     for x0 in starts:
         r = least_squares(
-            resid, np.clip(x0, lo_in, hi_in), bounds=(lo, hi), method="trf", x_scale="jac"
+            resid,
+            np.clip(x0, lo_in, hi_in),
+            jac=jac if spec.jac is not None else "2-point",
+            bounds=(lo, hi),
+            method="trf",
+            x_scale="jac",
         )
         if res is None or r.cost < res.cost:
             res = r

@@ -29,6 +29,7 @@ from scipy import special
 
 __all__ = [
     "axial_dispersion_open",
+    "axial_dispersion_open_jac",
     "axial_dispersion_closed",
     "tanks_in_series",
     "cstr_pfr",
@@ -436,9 +437,29 @@ class ModelSpec:
     guess: Callable[[float, float, float], tuple | list[tuple]] = field(repr=False)
     """guess(t_first, mean, std) from the profile's moments -> initial parameter vector, or a
     list of them (multi-start; the fit keeps the lowest residual)."""
+    jac: Callable[..., NDArray] | None = field(default=None, repr=False)
+    """Optional analytic Jacobian jac(t, *theta) -> (len(t), len(params))."""
 
     def __call__(self, t: ArrayLike, *theta: float) -> NDArray:
         return self.func(t, *theta)
+
+
+def axial_dispersion_open_jac(t: ArrayLike, tau_d: float, tau: float, pe: float) -> NDArray:
+    """Analytic derivatives of :func:`axial_dispersion_open` w.r.t. (tau_d, tau, pe), s = t - tau_d:
+    d ln E/d pe = 1/(2 pe) - (tau - s)^2 / (4 tau s),
+    d ln E/d tau = -1/(2 tau) - pe (tau^2 - s^2) / (4 s tau^2),
+    d ln E/d tau_d = 1/(2 s) - pe (tau^2 - s^2) / (4 tau s^2); all zero for s <= 0."""
+    tt = _as_t(t)
+    e = axial_dispersion_open(tt, tau_d, tau, pe)
+    s = tt - tau_d
+    out = np.zeros((tt.size, 3))
+    m = s > 0
+    sp = s[m]
+    d2 = tau**2 - sp**2
+    out[m, 0] = e[m] * (0.5 / sp - pe * d2 / (4 * tau * sp**2))
+    out[m, 1] = e[m] * (-0.5 / tau - pe * d2 / (4 * sp * tau**2))
+    out[m, 2] = e[m] * (0.5 / pe - (tau - sp) ** 2 / (4 * tau * sp))
+    return out
 
 
 def _g_ad(t0: float, mean: float, std: float) -> tuple[float, ...]:
