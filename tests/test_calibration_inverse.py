@@ -106,8 +106,10 @@ def test_table_3_4_reproduced_with_seed_equations():
     assert res.recommended is not None and res.recommended.exact
     sol = {k: v for k, v in res.recommended.params.items()}
     expected = SEED_TABLE_3_4["solution"]
-    for k in expected:
-        assert sol[k] == pytest.approx(expected[k], abs=1.5e-3), k
+    # agreement to the digits the seed prints (0.4931, 0.0383, 0.1851: 4 decimals; 0.195: 3)
+    for k, v in expected.items():
+        decimals = len(f"{v}".split(".")[1])
+        assert sol[k] == pytest.approx(v, abs=0.5 * 10.0**-decimals + 1e-5), k
     assert res.recommended.jacobian_rank == 4
 
 
