@@ -138,3 +138,31 @@ def test_feeder_simulate(tmp_path):
     )
     with pytest.raises(SystemExit, match="unstable"):
         main(["feeder", "simulate", "--set", "kp=5", "--out", str(tmp_path / "x")])
+
+
+def test_feeder_fit_ff(tmp_path, capsys):
+    """Eq. (2) fit from a feeder trace: the configured FF_max/FF_min/beta come back."""
+    assert (
+        main(
+            [
+                "feeder",
+                "simulate",
+                "--duration",
+                "600",
+                "--set",
+                "flow_noise_rel=0,refill_enabled=false",
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(["feeder", "fit-ff", str(tmp_path / "o" / "trace.csv"), "--out", str(tmp_path / "f")])
+        == 0
+    )
+    fit = json.loads((tmp_path / "f" / "fit.json").read_text())
+    assert fit["r2"] > 0.999
+    assert fit["beta"] == pytest.approx(0.8, rel=0.05)
+    with pytest.raises(SystemExit, match="lacks column"):
+        main(["feeder", "fit-ff", str(tmp_path / "o" / "trace.csv"), "--ff-col", "nope"])

@@ -140,6 +140,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     fs.add_argument("--set", dest="overrides", help="FIELD=VALUE,... overrides of the config")
     fs.add_argument("--out", required=True, help="output directory (trace.csv, feeder.png)")
     fs.set_defaults(func=_feeder_simulate)
+    ff = fsub.add_parser("fit-ff", help="fit seed Eq. (2) to feed factor vs hopper mass data")
+    ff.add_argument("data", help="CSV with hopper mass and feed factor columns")
+    ff.add_argument("--weight-col", default="hopper_mass_kg")
+    ff.add_argument("--ff-col", default="feed_factor_g_rev")
+    ff.add_argument("--out", help="output directory (fit.json, feed_factor_fit.png)")
+    ff.set_defaults(func=_feeder_fit_ff)
 
 
 # --------------------------------------------------------------------------- design
@@ -423,4 +429,36 @@ def _feeder_simulate(args: argparse.Namespace) -> int:
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps({k: v for k, v in summary.items() if k != "config"}, indent=2))
     print(f"wrote {out}/trace.csv, feeder.png, summary.json")
+    return 0
+
+
+def _feeder_fit_ff(args: argparse.Namespace) -> int:
+    import numpy as np
+    import pandas as pd
+    from matplotlib.figure import Figure
+
+    from twin_core.feeder import fit_feed_factor
+
+    data = pd.read_csv(args.data)
+    for c in (args.weight_col, args.ff_col):
+        if c not in data.columns:
+            raise SystemExit(f"{args.data} lacks column {c!r}; it has {list(data.columns)}")
+    try:
+        fit = fit_feed_factor(data[args.weight_col], data[args.ff_col])
+    except (ValueError, RuntimeError) as exc:
+        raise SystemExit(f"fit failed: {exc}") from None
+    print(json.dumps(fit.as_dict(), indent=2))
+    if args.out:
+        out = _out(args.out)
+        (out / "fit.json").write_text(json.dumps(fit.as_dict(), indent=2))
+        fig = Figure(figsize=(6, 4), layout="constrained")
+        ax = fig.subplots()
+        ax.plot(data[args.weight_col], data[args.ff_col], ".", ms=3, label="data")
+        w = np.linspace(0, float(data[args.weight_col].max()), 200)
+        ax.plot(w, fit.predict(w), "r-", label=f"Eq. (2), R$^2$ = {fit.r2:.3f}")
+        ax.set_xlabel(args.weight_col)
+        ax.set_ylabel(args.ff_col)
+        ax.legend()
+        _save(fig, out / "feed_factor_fit.png")
+        print(f"wrote {out}/fit.json, feed_factor_fit.png")
     return 0
