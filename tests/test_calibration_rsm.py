@@ -91,6 +91,11 @@ def test_figure_8_2_and_eq_10_two_step_stepwise(bulk):
     table = m.parameter_table()
     assert "(PP_SF-0.35)*(PP_SF-0.35)" in table.index
     assert "12.07512" in m.equation()
+    for direction in ("forward", "backward"):
+        other = TwoStepRSM(SEED_FACTORS, criterion="aicc", direction=direction).fit(
+            bulk, "shear_angle_deg"
+        )
+        assert other.model_.terms_ == m.terms_
 
 
 @pytest.mark.parametrize(

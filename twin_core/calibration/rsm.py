@@ -551,16 +551,21 @@ class TwoStepRSM:
             p_leave=self.p_leave,
         )
         mains = [t[0] for t in s1.terms]
-        s2 = stepwise(
-            data,
-            response,
-            second_order_terms(mains, self.interactions, self.quadratics),
+        cands = second_order_terms(mains, self.interactions, self.quadratics)
+        kw = dict(
             criterion=self.criterion_step2 or self.criterion,
-            direction="both" if self.direction == "backward" else self.direction,
             forced=s1.terms,
             p_enter=self.p_enter,
             p_leave=self.p_leave,
         )
+        try:
+            s2 = stepwise(data, response, cands, direction=self.direction, **kw)
+        except ValueError:
+            if self.direction != "backward":
+                raise
+            # the full second-order model is not estimable from these runs (more terms
+            # than runs, or aliased in the design): select from the main-effects model up
+            s2 = stepwise(data, response, cands, direction="both", **kw)
         self.main_effects_ = mains
         self.step1_ = s1.model
         self.model_ = s2.model
