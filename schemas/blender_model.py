@@ -1,8 +1,9 @@
 """Serializable compartment model of the continuous blender (wire/file contract).
 
-One open periodic section (compartments, holdups, sparse flow triplets, inlet and outlet
-compartments with their flows) plus the number of sections in series and the throughput
-basis.  The blender service loads it from JSON and calls :meth:`BlenderModel.predict` for the
+One periodic section of the blender as a conserving compartment network (compartments,
+holdups, sparse flow triplets with a flag for the flows through the periodic face, the
+inlet/outlet compartments of that face with their forward flows) plus the number of sections
+in series, the section RTD form and the throughput basis.  The blender service loads it from JSON and calls :meth:`BlenderModel.predict` for the
 outlet concentration or :meth:`BlenderModel.impulse_response` for E(t), like an RTD model.
 The numerics live in ``twin_core.compartment`` (imported when a method is first called).
 """
@@ -29,16 +30,27 @@ class BlenderModel(BaseModel):
     flow_src: list[int] = Field(description="flow triplets: source compartment")
     flow_dst: list[int] = Field(description="flow triplets: destination compartment")
     flow_kg_s: list[float] = Field(description="flow triplets: mass flow (kg/s)")
-    inlet_compartments: list[int] = Field(min_length=1)
-    inlet_kg_s: list[float] = Field(description="feed into each inlet compartment (kg/s)")
-    outlet_compartments: list[int] = Field(min_length=1)
-    outlet_kg_s: list[float] = Field(description="discharge of each outlet compartment (kg/s)")
+    flow_wrap: list[bool] = Field(description="flow goes through the periodic face")
+    compartment_slice: list[int] = Field(description="axial slice of each compartment")
+    inlet_compartments: list[int] = Field(
+        min_length=1, description="first-slice compartments fed through the periodic face"
+    )
+    inlet_kg_s: list[float] = Field(description="forward flow into each inlet compartment")
+    outlet_compartments: list[int] = Field(
+        min_length=1, description="last-slice compartments leaving through the periodic face"
+    )
+    outlet_kg_s: list[float] = Field(description="forward flow out of each outlet compartment")
     n_sections: int = Field(default=8, ge=1)
+    section_form: Literal["transit", "closed"] = Field(
+        default="transit",
+        description="section RTD: record-passage transit time (DEM definition) or the "
+        "closed-closed cut of the periodic face",
+    )
+    n_upstream: int = Field(default=2, ge=0, description="upstream copies of the transit form")
     coupling: Literal["mixing_cup"] = "mixing_cup"
     throughput_kg_h: float = Field(gt=0, description="throughput basis of the flows")
     rpm_basis: float | None = Field(default=None, gt=0)
     section_length_m: float = Field(gt=0)
-    compartment_slice: list[int] | None = None
     compartment_centroid_m: list[list[float]] | None = None
     rsd_ss: float | None = None
     rsd_0: float | None = None
@@ -47,6 +59,7 @@ class BlenderModel(BaseModel):
     notes: dict[str, float | str] = Field(default_factory=dict)
 
     _cdf_cache: dict = PrivateAttr(default_factory=dict)
+    _section: Any = PrivateAttr(default=None)
 
     @model_validator(mode="after")
     def _check(self) -> BlenderModel:
@@ -58,11 +71,13 @@ class BlenderModel(BaseModel):
         if any(not (h > 0) for h in self.holdup_kg):
             raise ValueError("holdup_kg must be > 0")
         m = len(self.flow_kg_s)
-        if len(self.flow_src) != m or len(self.flow_dst) != m:
+        if len(self.flow_src) != m or len(self.flow_dst) != m or len(self.flow_wrap) != m:
             raise ValueError(
-                f"flow_src, flow_dst, flow_kg_s must have equal length, got "
-                f"{len(self.flow_src)}, {len(self.flow_dst)}, {m}"
+                f"flow_src, flow_dst, flow_kg_s, flow_wrap must have equal length, got "
+                f"{len(self.flow_src)}, {len(self.flow_dst)}, {m}, {len(self.flow_wrap)}"
             )
+        if len(self.compartment_slice) != n:
+            raise ValueError(f"compartment_slice must have n_compartments={n} values")
         for name in ("flow_src", "flow_dst", "inlet_compartments", "outlet_compartments"):
             idx = getattr(self, name)
             if idx and (min(idx) < 0 or max(idx) >= n):
@@ -76,50 +91,80 @@ class BlenderModel(BaseModel):
         if len(self.outlet_kg_s) != len(self.outlet_compartments):
             raise ValueError("outlet_kg_s must have one value per outlet compartment")
         bal = self._balance()
-        scale = max(float(np.max(self.flow_kg_s, initial=0.0)), sum(self.inlet_kg_s))
+        scale = max(float(np.max(self.flow_kg_s, initial=0.0)), 1e-300)
         if np.abs(bal).max() > 1e-8 * scale:
             raise ValueError(
                 f"flows must conserve mass: max |in - out| = {np.abs(bal).max():.3e} kg/s "
                 f"(compartment {int(np.argmax(np.abs(bal)))})"
             )
-        q = sum(self.inlet_kg_s) * 3600.0
+        sl = np.asarray(self.compartment_slice)
+        src = np.asarray(self.flow_src, dtype=np.int64)
+        dst = np.asarray(self.flow_dst, dtype=np.int64)
+        w = np.asarray(self.flow_wrap, dtype=bool)
+        r = np.asarray(self.flow_kg_s, dtype=float)
+        last = int(sl.max())
+        fwd = w & (sl[src] == last) & (sl[dst] == 0)
+        bwd = w & (sl[src] == 0) & (sl[dst] == last)
+        if np.any(w & ~fwd & ~bwd):
+            raise ValueError("flow_wrap flows must join the last and the first slice")
+        feed = np.zeros(n)
+        np.add.at(feed, dst[fwd], r[fwd])
+        dis = np.zeros(n)
+        np.add.at(dis, src[fwd], r[fwd])
+        for name, comp, val, ref in (
+            ("inlet", self.inlet_compartments, self.inlet_kg_s, feed),
+            ("outlet", self.outlet_compartments, self.outlet_kg_s, dis),
+        ):
+            got = np.zeros(n)
+            np.add.at(got, comp, val)
+            if np.abs(got - ref).max() > 1e-8 * scale:
+                raise ValueError(
+                    f"{name}_compartments/{name}_kg_s must equal the forward flows through "
+                    f"the periodic face"
+                )
+        q = float(r[fwd].sum() - r[bwd].sum()) * 3600.0
+        if q <= 0:
+            raise ValueError(f"net flow through the periodic face must be > 0, got {q} kg/h")
         if abs(q - self.throughput_kg_h) > 1e-6 * self.throughput_kg_h:
             raise ValueError(
-                f"throughput_kg_h={self.throughput_kg_h} differs from the total inlet flow {q} kg/h"
+                f"throughput_kg_h={self.throughput_kg_h} differs from the net flow through "
+                f"the periodic face {q} kg/h"
             )
         return self
 
     def _balance(self) -> np.ndarray:
+        """Inflow minus outflow of every compartment of the periodic section (kg/s)."""
         n = self.n_compartments
         src = np.asarray(self.flow_src, dtype=np.int64)
         dst = np.asarray(self.flow_dst, dtype=np.int64)
         r = np.asarray(self.flow_kg_s, dtype=float)
-        bal = np.bincount(dst, weights=r, minlength=n) - np.bincount(src, weights=r, minlength=n)
-        bal[self.inlet_compartments] += np.asarray(self.inlet_kg_s)
-        bal[self.outlet_compartments] -= np.asarray(self.outlet_kg_s)
-        return bal
+        return np.bincount(dst, weights=r, minlength=n) - np.bincount(src, weights=r, minlength=n)
 
     # ------------------------------------------------------------------ numerics
-    def section_network(self) -> Any:
-        """The open section as a ``twin_core.compartment.network.CompartmentNetwork``."""
+    def periodic_network(self) -> Any:
+        """The periodic section as a ``twin_core.compartment.network.CompartmentNetwork``."""
         from twin_core.compartment.network import CompartmentNetwork
 
-        n = self.n_compartments
-        feed = np.zeros(n)
-        np.add.at(feed, self.inlet_compartments, self.inlet_kg_s)
-        dis = np.zeros(n)
-        np.add.at(dis, self.outlet_compartments, self.outlet_kg_s)
         return CompartmentNetwork(
             holdup=np.asarray(self.holdup_kg),
             src=np.asarray(self.flow_src, dtype=np.int64),
             dst=np.asarray(self.flow_dst, dtype=np.int64),
             rate=np.asarray(self.flow_kg_s),
-            feed=feed,
-            discharge=dis,
-            slice_index=None
-            if self.compartment_slice is None
-            else np.asarray(self.compartment_slice),
+            wrap=np.asarray(self.flow_wrap, dtype=bool),
+            slice_index=np.asarray(self.compartment_slice, dtype=np.int64),
         )
+
+    def section_network(self) -> Any:
+        """The section whose impulse response is the section RTD (``section_form``)."""
+        if self._section is None:
+            from twin_core.compartment.network import first_passage_network, open_section
+
+            per = self.periodic_network()
+            if self.section_form == "transit":
+                self._section = first_passage_network(per, self.n_upstream)
+            else:
+                self._section = open_section(per)
+        return self._section
 
     @property
     def mean_residence_time_s(self) -> float:

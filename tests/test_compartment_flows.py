@@ -52,9 +52,9 @@ def test_product_flows_conserve_mass_exactly_seed_flows_do_not(case):
         m = CompartmentModel().fit(fields)
         scale = m.throughput_kg_s_
         assert np.abs(m.periodic_.balance()).max() < 1e-10 * scale
-        assert np.abs(m.section_.balance()).max() < 1e-10 * scale
-        assert m.section_.throughput == pytest.approx(m.throughput_kg_s_, rel=1e-12)
-        assert np.all(m.periodic_.rate >= 0) and np.all(m.section_.rate >= 0)
+        assert np.abs(m.closed_section_.balance()).max() < 1e-10 * scale
+        assert m.closed_section_.throughput == pytest.approx(m.throughput_kg_s_, rel=1e-12)
+        assert np.all(m.periodic_.rate >= 0) and np.all(m.closed_section_.rate >= 0)
         assert m.seed_imbalance_["max_rel"] > 0.1
     assert m.raw_imbalance_["max_rel"] > 1e-3  # Poisson counts do not balance by themselves
 

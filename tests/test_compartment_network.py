@@ -15,6 +15,7 @@ from twin_core.compartment import (
     synthetic_blender_fields,
     to_blender_model,
 )
+from twin_core.compartment.network import chain_periodic
 
 
 @pytest.fixture(scope="module")
@@ -51,9 +52,12 @@ def test_equal_compartments_in_series_are_tanks_in_series():
 
 
 def test_section_rtd_area_one_and_mean_v_over_q(model):
-    """Closed-vessel law (Danckwerts 1953): for a conserving network the impulse response
-    integrates to 1 and its mean is tau = holdup / throughput."""
-    sec = model.section_
+    """Closed-vessel law (Danckwerts 1953): for a conserving network (the closed-closed
+    section, the face-coupled whole blender) the impulse response integrates to 1 and its mean
+    is tau = holdup / throughput.  The transit (record-passage) form obeys the same mean by
+    the renewal-reward theorem (net advance of one period per V/Q), up to the truncation of
+    its upstream copies."""
+    sec = model.closed_section_
     tau = sec.total_holdup / sec.throughput
     t = np.linspace(0, 40 * tau, 8001)
     area, mean, _ = rtd_moments(t, sec.impulse_response(t))
@@ -61,19 +65,28 @@ def test_section_rtd_area_one_and_mean_v_over_q(model):
     assert mean == pytest.approx(tau, rel=1e-5)
     assert model.mean_residence_time_s_ == pytest.approx(tau, rel=1e-12)
     assert sec.cumulative(t)[-1] == pytest.approx(1.0, abs=1e-9)
+    area, mean, _ = rtd_moments(t, model.transit_section_.impulse_response(t))
+    assert area == pytest.approx(1.0, abs=1e-6)
+    assert mean == pytest.approx(tau, rel=2e-4)
+    whole = chain_periodic(model.periodic_, 3)
+    assert np.abs(whole.balance()).max() < 1e-10 * whole.throughput
+    t3 = np.linspace(0, 15 * 3 * tau, 3001)
+    area, mean, _ = rtd_moments(t3, whole.impulse_response(t3))
+    assert area == pytest.approx(1.0, abs=1e-6)
+    assert mean == pytest.approx(3 * tau, rel=1e-5)
 
 
 def test_n_section_convolution_equals_chained_network(model):
     """Eq. (8-9): E of n sections by convolution equals the chained network's E."""
     sec = model.section_
     n = 8
-    t = np.linspace(0, 4 * n * sec.mean_residence_time, 1201)
+    t = np.linspace(0, 4 * n * model.mean_residence_time_s_, 1201)
     e_chain = chain_sections(sec, n).impulse_response(t)
     e_conv = blender_rtd(sec, n, t)
     assert np.abs(e_chain - e_conv).max() < 1e-6 * e_chain.max()
     area, mean, _ = rtd_moments(t, e_conv)
     assert area == pytest.approx(1.0, abs=1e-5)
-    assert mean == pytest.approx(n * sec.mean_residence_time, rel=1e-4)
+    assert mean == pytest.approx(n * model.mean_residence_time_s_, rel=1e-3)
 
 
 def test_predict_step_pulse_and_dynamic_flows(model):
@@ -82,7 +95,7 @@ def test_predict_step_pulse_and_dynamic_flows(model):
     of a constant-volume vessel)."""
     sec = model.section_
     n = 4
-    tau = n * sec.mean_residence_time
+    tau = n * model.mean_residence_time_s_
     dt = 0.05
     t = np.arange(0, 6 * tau, dt)
     u = np.ones_like(t)
@@ -116,7 +129,8 @@ def test_blender_model_export_roundtrip(model, tmp_path):
     e = bm2.impulse_response(t)
     assert np.trapezoid(e, t) == pytest.approx(1.0, abs=1e-3)
     d = bm.model_dump()
-    d["flow_kg_s"] = [r * 1.1 for r in d["flow_kg_s"]]
+    internal = d["flow_wrap"].index(False)
+    d["flow_kg_s"][internal] *= 1.5
     with pytest.raises(ValueError, match="conserve mass"):
         BlenderModel.model_validate(d)
     d = bm.model_dump()

@@ -24,11 +24,16 @@ import numpy as np
 from scipy.optimize import curve_fit
 from scipy.signal import fftconvolve
 
-from twin_core.compartment.network import CompartmentNetwork, _propagate, convolve_power
+from twin_core.compartment.network import (
+    CompartmentNetwork,
+    _propagate,
+    convolve_power,
+    section_tau,
+)
 
 
 def _fine_grid(section: CompartmentNetwork, dt: float, points_per_tau: int) -> tuple[float, int]:
-    tau = section.mean_residence_time
+    tau = section_tau(section)
     r = max(1, math.ceil(dt * points_per_tau / tau))
     return dt / r, r
 
@@ -67,7 +72,7 @@ def blender_cdf_increments(
     tail: float = 1e-12,
 ) -> np.ndarray:
     """F(k dt) of the whole blender for k = 0..K (K <= n_steps, cut once 1 - F < ``tail``)."""
-    tau = section.mean_residence_time * n_sections
+    tau = section_tau(section) * n_sections
     dtf, r = _fine_grid(section, dt, points_per_tau)
     horizon = min(n_steps * dt, 12.0 * tau)
     while True:

@@ -16,27 +16,34 @@ def blender_model_fields(
     rsd_fit: dict[str, float] | None = None,
     source: str = "",
 ) -> dict[str, Any]:
-    """Plain-data fields of a BlenderModel for the open section of ``model``."""
+    """Plain-data fields of a BlenderModel for the periodic section of ``model``."""
     if n_sections < 1:
         raise ValueError(f"n_sections must be >= 1, got {n_sections}")
-    sec = model.section_
-    inlet = np.flatnonzero(sec.feed > 0)
-    outlet = np.flatnonzero(sec.discharge > 0)
+    per = model.periodic_
+    last = int(per.slice_index.max())
+    fwd = per.wrap & (per.slice_index[per.src] == last) & (per.slice_index[per.dst] == 0)
+    feed = np.bincount(per.dst[fwd], weights=per.rate[fwd], minlength=per.n)
+    dis = np.bincount(per.src[fwd], weights=per.rate[fwd], minlength=per.n)
+    inlet = np.flatnonzero(feed > 0)
+    outlet = np.flatnonzero(dis > 0)
     d: dict[str, Any] = {
-        "n_compartments": sec.n,
-        "holdup_kg": sec.holdup.tolist(),
-        "flow_src": sec.src.tolist(),
-        "flow_dst": sec.dst.tolist(),
-        "flow_kg_s": sec.rate.tolist(),
+        "n_compartments": per.n,
+        "holdup_kg": per.holdup.tolist(),
+        "flow_src": per.src.tolist(),
+        "flow_dst": per.dst.tolist(),
+        "flow_kg_s": per.rate.tolist(),
+        "flow_wrap": per.wrap.astype(bool).tolist(),
+        "compartment_slice": per.slice_index.tolist(),
         "inlet_compartments": inlet.tolist(),
-        "inlet_kg_s": sec.feed[inlet].tolist(),
+        "inlet_kg_s": feed[inlet].tolist(),
         "outlet_compartments": outlet.tolist(),
-        "outlet_kg_s": sec.discharge[outlet].tolist(),
+        "outlet_kg_s": dis[outlet].tolist(),
         "n_sections": n_sections,
-        "throughput_kg_h": float(sec.feed.sum() * 3600.0),
+        "section_form": model.section_form,
+        "n_upstream": model.n_upstream,
+        "throughput_kg_h": float(model.throughput_kg_s_ * 3600.0),
         "rpm_basis": rpm_basis,
         "section_length_m": model.section_length_m_,
-        "compartment_slice": model.slice_index_.tolist(),
         "compartment_centroid_m": model.centroid_.tolist(),
         "source": source,
         "notes": {k: v for k, v in model.summary().items() if isinstance(v, (int, float, str))},

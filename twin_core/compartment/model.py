@@ -10,7 +10,11 @@ Steps (dissertation chapter 5.2.3, with the seed's flows replaced by conserving 
    compartments, projected onto exact conservation with non-negative flows
    (:func:`~twin_core.compartment.flows.project_flows`, throughput kept);
 5. the seed's Eq. (1) flows on the same compartments with their imbalance, for comparison;
-6. the open section (periodic face cut, re-projected) whose RTD is the section model.
+6. the section RTD model: by default the transit (record-passage) form -- the periodic
+   network unwrapped with upstream copies, timed between successive first passages of new
+   multiples of the section length, the DEM transit-time definition; whole blender = its
+   n-fold convolution (seed Eq. 8-9).  The conserving closed-closed cut of the section
+   (feed/discharge at the periodic face, re-projected) is kept as ``closed_section_``.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from twin_core.compartment.flows import (
 from twin_core.compartment.network import (
     CompartmentNetwork,
     _weights,
+    first_passage_network,
     open_section,
     periodic_throughput,
 )
@@ -65,13 +70,18 @@ class CompartmentModel:
         of the same slice sharing most faces (1 = no merging, the seed's maps).
     flow_source : "crossings", "velocity" or "auto" (crossings when present).
     projection_weights : "uniform" (minimal Euclidean correction) or "relative".
+    section_form : "transit" (record-passage first-passage network, default) or "closed"
+        (closed-closed cut of the periodic face) for ``section_``.
+    n_upstream : upstream copies of the transit form (2 leaves a truncation error < 1e-4).
     axial_axis : index of the periodic axial axis (0 = x).
 
     Attributes after :meth:`fit`: ``mask_``, ``zones_`` (variable -> zone map), ``maps_``
     (variable -> compartment map), ``labels_`` (product compartment map, -1 empty),
     ``n_compartments_``, ``holdup_kg_``, ``raw_flows_`` (FlowGraph before projection),
     ``raw_imbalance_``, ``correction_rel_`` (|f - f0| / |f0|), ``periodic_`` (conserving
-    periodic network), ``section_`` (open section), ``seed_flows_``, ``seed_imbalance_``,
+    periodic network), ``closed_section_`` (conserving closed-closed section),
+    ``transit_section_`` (record-passage network), ``section_`` (the one chosen by
+    ``section_form``), ``seed_flows_``, ``seed_imbalance_``,
     ``throughput_kg_s_``, ``mean_residence_time_s_``, ``axial_velocity_m_s_`` (L Q / V),
     ``section_length_m_``, ``flow_source_``.
     """
@@ -85,6 +95,8 @@ class CompartmentModel:
         min_cells: int = 3,
         flow_source: str = "auto",
         projection_weights: str = "uniform",
+        section_form: str = "transit",
+        n_upstream: int = 2,
         axial_axis: int = 0,
     ) -> None:
         self.variables = tuple(variables)
@@ -94,6 +106,8 @@ class CompartmentModel:
         self.min_cells = min_cells
         self.flow_source = flow_source
         self.projection_weights = projection_weights
+        self.section_form = section_form
+        self.n_upstream = n_upstream
         self.axial_axis = axial_axis
 
     def _check(self, fields: GridFields) -> None:
@@ -108,6 +122,12 @@ class CompartmentModel:
             raise ValueError(
                 f"flow_source must be 'auto', 'crossings' or 'velocity', got {self.flow_source!r}"
             )
+        if self.section_form not in ("transit", "closed"):
+            raise ValueError(
+                f"section_form must be 'transit' or 'closed', got {self.section_form!r}"
+            )
+        if self.n_upstream < 0:
+            raise ValueError(f"n_upstream must be >= 0, got {self.n_upstream}")
         if self.min_cells < 1:
             raise ValueError(f"min_cells must be >= 1, got {self.min_cells}")
         if self.axial_axis not in (0, 1, 2):
@@ -179,8 +199,12 @@ class CompartmentModel:
         self.seed_flows_ = seed_flows(fields, labels, axial_axis=ax)
         self.seed_imbalance_ = imbalance_report(self.seed_flows_)
         self.section_length_m_ = float(fields.edges[ax][-1] - fields.edges[ax][0])
-        self.section_ = open_section(self.periodic_, weights=self.projection_weights)
-        self.mean_residence_time_s_ = self.section_.mean_residence_time
+        self.closed_section_ = open_section(self.periodic_, weights=self.projection_weights)
+        self.transit_section_ = first_passage_network(self.periodic_, self.n_upstream)
+        self.section_ = (
+            self.transit_section_ if self.section_form == "transit" else self.closed_section_
+        )
+        self.mean_residence_time_s_ = self.closed_section_.mean_residence_time
         self.axial_velocity_m_s_ = self.section_length_m_ / self.mean_residence_time_s_
         return self
 
@@ -225,7 +249,8 @@ class CompartmentModel:
             "axial_velocity_m_s": self.axial_velocity_m_s_,
             "raw_imbalance_max_rel": self.raw_imbalance_["max_rel"],
             "projection_correction_rel": self.correction_rel_,
-            "open_correction_rel": self.section_.meta.get("open_correction_rel", 0.0),
+            "section_form": self.section_form,
+            "open_correction_rel": self.closed_section_.meta.get("open_correction_rel", 0.0),
             "seed_imbalance_max_rel": self.seed_imbalance_["max_rel"],
             "dropped_flow_kg_s": self.raw_flows_.dropped_kg_s,
         }

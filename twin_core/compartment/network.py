@@ -335,6 +335,64 @@ def chain_sections(section: CompartmentNetwork, n_sections: int) -> CompartmentN
     )
 
 
+def chain_periodic(
+    net: CompartmentNetwork, n_sections: int, weights: str = "uniform"
+) -> CompartmentNetwork:
+    """Whole blender with face-to-face coupling: ``n_sections`` copies of the periodic
+    network joined through their periodic faces in both directions (backflow between
+    sections kept), cut closed-closed only at the blender inlet and outlet and re-projected
+    there (as :func:`open_section`).  Conserving, so its mean residence time is n V / Q;
+    unlike :func:`chain_sections` its E is not exactly the n-fold convolution of a section.
+    """
+    if n_sections < 1:
+        raise ValueError(f"n_sections must be >= 1, got {n_sections}")
+    Q = periodic_throughput(net)
+    if Q <= 0:
+        raise ValueError(f"net throughput through the periodic face must be > 0, got {Q}")
+    fwd, bwd = _wrap_directions(net)
+    n = net.n
+    internal = ~(fwd | bwd)
+    src, dst, f0 = [], [], []
+    for c in range(n_sections):
+        off = c * n
+        src.append(net.src[internal] + off)
+        dst.append(net.dst[internal] + off)
+        f0.append(net.rate[internal])
+        if c + 1 < n_sections:
+            src += [net.src[fwd] + off, net.src[bwd] + off + n]
+            dst += [net.dst[fwd] + off + n, net.dst[bwd] + off]
+            f0 += [net.rate[fwd], net.rate[bwd]]
+    N = n * n_sections
+    outside = N
+    feed0 = np.bincount(net.dst[fwd], weights=net.rate[fwd], minlength=n)
+    dis0 = np.bincount(net.src[fwd], weights=net.rate[fwd], minlength=n)
+    fi = np.flatnonzero(feed0 > 0)
+    di = np.flatnonzero(dis0 > 0)
+    ni = int(sum(a.size for a in src))
+    src = np.concatenate(src + [np.full(fi.size, outside), di + (n_sections - 1) * n])
+    dst = np.concatenate(dst + [fi, np.full(di.size, outside)])
+    f0 = np.concatenate(f0 + [feed0[fi], dis0[di]])
+    C = incidence(N + 1, src, dst)[:N]
+    row = np.zeros(src.size)
+    row[src == outside] = 1.0
+    C = sp.vstack([C, sp.csr_matrix(row)]).tocsr()
+    f = project_flows(C, np.concatenate([np.zeros(N), [Q]]), f0, weights=_weights(f0, weights))
+    feed = np.zeros(N)
+    feed[fi] = f[ni : ni + fi.size]
+    dis = np.zeros(N)
+    dis[di + (n_sections - 1) * n] = f[ni + fi.size :]
+    keep = f[:ni] > 0
+    return CompartmentNetwork(
+        holdup=np.tile(net.holdup, n_sections),
+        src=src[:ni][keep],
+        dst=dst[:ni][keep],
+        rate=f[:ni][keep],
+        feed=feed,
+        discharge=dis,
+        meta={"n_sections": n_sections, "coupling": "faces"},
+    )
+
+
 def first_passage_network(
     net: CompartmentNetwork, n_upstream: int = 2, entry: str = "record"
 ) -> CompartmentNetwork:
@@ -384,7 +442,17 @@ def first_passage_network(
     if entry == "record":
         p = record_entry(fp, net.dst[fwd], net.src[fwd], net.rate[fwd], n)
         fp.feed = p * feed.sum()
+    q_net = float(net.rate[fwd].sum() - net.rate[bwd].sum())
+    if q_net > 0:
+        fp.meta["tau"] = net.total_holdup / q_net
     return fp
+
+
+def section_tau(section: CompartmentNetwork) -> float:
+    """Time scale V/Q of one section: ``meta["tau"]`` of a first-passage network (its feed
+    counts gross crossings), else the network's own holdup / throughput."""
+    tau = section.meta.get("tau")
+    return float(tau) if tau is not None else section.mean_residence_time
 
 
 def record_entry(
