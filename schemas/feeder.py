@@ -127,6 +127,12 @@ class FeederConfig(BaseModel):
                 raise ValueError(
                     f"setpoint_schedule entries need t_s >= 0 and setpoint_kg_h > 0, got ({t}, {sp})"
                 )
+        top_sp = max([self.setpoint_kg_h] + [sp for _, sp in self.setpoint_schedule])
+        if self.refill_enabled and self.refill_rate_kg_s * 3600.0 <= top_sp:
+            raise ValueError(
+                f"refill_rate_kg_s {self.refill_rate_kg_s} ({self.refill_rate_kg_s * 3600:.4g} kg/h) "
+                f"must exceed the set point {top_sp} kg/h, or the hopper never refills"
+            )
         # the set point must be reachable at the lowest hopper level the feeder runs at
         w_low = self.refill_low_kg if self.refill_enabled else 0.0
         ff_low = self.ff_max_g_rev - (self.ff_max_g_rev - self.ff_min_g_rev) * math.exp(

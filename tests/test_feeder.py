@@ -135,6 +135,7 @@ def test_seeded_noise_is_reproducible():
         (dict(setpoint_schedule=[(10.0, 5.0), (5.0, 6.0)]), "increasing"),
         (dict(bogus=1), "bogus"),
         (dict(kp=3.0, ki=0.1), "unstable"),
+        (dict(refill_rate_kg_s=0.001), "never refills"),
         (dict(kp=0.3, ki=1.0), "unstable"),
     ],
 )
