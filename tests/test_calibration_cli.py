@@ -39,6 +39,19 @@ def test_design_fit_solve(tmp_path, capsys):
     summary = pd.read_csv(tmp_path / "f" / "summary.csv").set_index("response")
     assert summary.loc["shear_angle_deg", "sse"] == pytest.approx(188.135, abs=1e-3)
     assert (tmp_path / "f" / "parity.png").exists()
+    args = [
+        "calibrate",
+        "fit",
+        "seed:feed_factor",
+        "--criterion",
+        "p",
+        "--predict",
+        "seed:verification",
+    ]
+    assert main(args + ["--out", str(tmp_path / "ff")]) == 0
+    pred = pd.read_csv(tmp_path / "ff" / "predictions.csv")
+    assert list(pred["run"]) == ["V1", "V2"]
+    assert (pred["FF_max:lower"] < pred["FF_max:predicted"]).all()
     rc = main(
         [
             "calibrate",

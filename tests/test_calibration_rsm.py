@@ -241,3 +241,23 @@ def test_bad_tables_give_clear_errors(bulk):
         )
     with pytest.raises(ValueError, match="criterion"):
         stepwise(bulk, "AOR_deg", ["PP_SF"], criterion="r2")
+
+
+def test_prediction_interval_coverage():
+    """t intervals (Montgomery, Design and Analysis of Experiments, 10.6): 95 % prediction
+    intervals cover about 95 % of new noisy runs from the true surface."""
+    rng = np.random.default_rng(0)
+    x = np.linspace(0, 1, 15)
+    cover = 0
+    trials = 200
+    for _ in range(trials):
+        data = pd.DataFrame({"x": x, "y": 1 + 2 * x + 0.1 * rng.standard_normal(x.size)})
+        m = ResponseSurface(terms=["x"]).fit(data, "y")
+        new_x = rng.random()
+        iv = m.predict_interval({"x": [new_x]}).iloc[0]
+        y_new = 1 + 2 * new_x + 0.1 * rng.standard_normal()
+        cover += iv.lower <= y_new <= iv.upper
+    assert 0.90 <= cover / trials <= 0.99
+    conf = m.predict_interval({"x": [0.5]}, kind="confidence").iloc[0]
+    pred = m.predict_interval({"x": [0.5]}).iloc[0]
+    assert pred.upper - pred.lower > conf.upper - conf.lower

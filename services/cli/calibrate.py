@@ -11,7 +11,12 @@ from typing import Any
 
 log = logging.getLogger("twin.calibrate")
 
-_SEED_TABLES = {"seed:bulk": "bulk", "seed:feed_factor": "feed_factor", "seed:dsd": "dsd"}
+_SEED_TABLES = {
+    "seed:bulk": "bulk",
+    "seed:feed_factor": "feed_factor",
+    "seed:dsd": "dsd",
+    "seed:verification": "verification",
+}
 
 
 def _pairs(text: str | None, name: str) -> dict[str, float]:
@@ -96,6 +101,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--criterion", default="aicc", choices=["aic", "aicc", "bic", "p"])
     f.add_argument("--direction", default="both", choices=["forward", "backward", "both"])
     f.add_argument("--terms", help="fit these terms instead of stepwise, e.g. 'A,B,A*B,A*A'")
+    f.add_argument(
+        "--predict",
+        help="table of new runs to predict (95 %% prediction intervals), e.g. seed:verification",
+    )
     f.add_argument("--out", help="output directory (models.json, parity.png, summary.csv)")
     f.set_defaults(func=_fit)
 
@@ -273,6 +282,18 @@ def _fit(args: argparse.Namespace) -> int:
         ]
     )
     print(summary.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    pred = None
+    if args.predict:
+        new = _load_table(args.predict)
+        parts = [new[["run"]] if "run" in new.columns else pd.DataFrame(index=new.index)]
+        for k, m in models.items():
+            try:
+                iv = m.predict_interval(new)
+            except ValueError as exc:
+                raise SystemExit(f"--predict: {exc}") from None
+            parts.append(iv.add_prefix(f"{k}:").set_index(new.index))
+        pred = pd.concat(parts, axis=1)
+        print(pred.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     if args.out:
         out = _out(args.out)
         summary.to_csv(out / "summary.csv", index=False)
@@ -281,6 +302,8 @@ def _fit(args: argparse.Namespace) -> int:
         )
         (out / "report.txt").write_text("\n\n".join(m.report() for m in models.values()))
         _save(plot_parity(models), out / "parity.png")
+        if pred is not None:
+            pred.to_csv(out / "predictions.csv", index=False)
         print(f"wrote {out}/summary.csv, models.json, report.txt, parity.png")
     return 0
 

@@ -254,6 +254,25 @@ class ResponseSurface:
         x = _design_matrix(data, self.terms_, self.centers_)
         return np.einsum("ij,jk,ik->i", x, self.cov_.to_numpy(), x)
 
+    def predict_interval(
+        self,
+        data: pd.DataFrame | Mapping[str, float | Sequence[float]],
+        alpha: float = 0.05,
+        kind: Literal["confidence", "prediction"] = "prediction",
+    ) -> pd.DataFrame:
+        """Prediction with a two-sided t interval: 'confidence' for the mean response
+        (x0' Cov x0), 'prediction' for a new run (adds the error variance s^2)."""
+        if not 0 < alpha < 1:
+            raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+        if kind not in ("confidence", "prediction"):
+            raise ValueError(f"kind must be 'confidence' or 'prediction', got {kind!r}")
+        mean = self.predict(data)
+        var = self.prediction_variance(data)
+        if kind == "prediction":
+            var = var + self.rmse_**2
+        half = stats.t.ppf(1 - alpha / 2, self.n_ - len(self.terms_) - 1) * np.sqrt(var)
+        return pd.DataFrame({"predicted": mean, "lower": mean - half, "upper": mean + half})
+
     def gradient(self, values: Mapping[str, float]) -> dict[str, float]:
         """Analytic d(prediction)/d(factor) at one point."""
         grad = {f: 0.0 for f in self.factors_}
