@@ -59,8 +59,12 @@ def test_funnel_and_lots(run_csv, tmp_path, capsys):
         == 0
     )
     f = json.loads((out / "funnel.json").read_text())
-    assert 0 < f["feasible_fraction"] < 1
+    assert 0 < f["funnels"]["run"]["feasible_fraction"] < 1
     assert (out / "funnel.png").exists() and (out / "funnel.csv").exists()
+    out2 = tmp_path / "f2"
+    assert main(["rtd", "funnel", str(path), "--compare", str(path), "--out", str(out2)]) == 0
+    c = json.loads((out2 / "funnel.json").read_text())["comparison"]
+    assert c["cells_changed"] == 0 and (out2 / "funnel_difference.png").exists()
     capsys.readouterr()
     assert main(["rtd", "lots", str(path), "--disturbance", "100", "130"]) == 0
     res = json.loads(capsys.readouterr().out)

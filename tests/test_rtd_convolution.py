@@ -51,3 +51,19 @@ def test_convolution_errors():
         convolve(np.arange(3.0), np.ones(3), np.array([1.0, np.nan, 0.0]))
     with pytest.raises(ValueError, match="strictly increasing"):
         cumulative([1.0, 0.0], [1.0, 1.0])
+
+
+def test_series_and_parallel_combinations():
+    """Series of PFR-delayed CSTRs = tanks in series with delay (rtdpy-style combination);
+    parallel paths are the fraction-weighted sum (Levenspiel 1999 ch. 12)."""
+    from twin_core.rtd.convolution import parallel, series
+
+    t = np.linspace(0, 300, 30001)
+    e = series(t, M.cstr_pfr(t, 4.0, 10.0), M.cstr(t, 10.0), M.cstr(t, 10.0))
+    np.testing.assert_allclose(e, M.tanks_in_series(t, 4.0, 30.0, 3.0), atol=5e-5)
+    p = parallel([0.3, 0.7], M.cstr(t, 5.0), M.cstr(t, 20.0))
+    assert np.trapezoid(t * p, t) == pytest.approx(0.3 * 5 + 0.7 * 20, rel=1e-3)
+    with pytest.raises(ValueError, match="sum to 1"):
+        parallel([0.5, 0.6], M.cstr(t, 5.0), M.cstr(t, 20.0))
+    with pytest.raises(ValueError, match="at least one RTD"):
+        series(t)

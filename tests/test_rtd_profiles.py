@@ -167,3 +167,17 @@ def test_truncation_keeps_length_and_levels():
         truncation.truncate_relative(c, 1.5)
     with pytest.raises(ValueError, match="baseline samples"):
         truncation.pat_level(T, c, 3.0, 1e6)
+
+
+def test_trim_with_sanity_checks():
+    """Trimming keeps 1 - end_loss of the mass, renormalizes, and refuses profiles whose tail
+    was cut by the measurement (sanity check as in bio-rtd's trimming)."""
+    t = np.linspace(0, 300, 3001)
+    e = axial_dispersion_open(t, 11.92, 16.37, 7.67)
+    ts, es = truncation.trim(t, e, end_loss=1e-3)
+    assert ts.size < t.size and np.trapezoid(es, ts) == pytest.approx(1.0)
+    assert ts[-1] == pytest.approx(np.interp(0.999, np.cumsum(e) / e.sum(), t), abs=1.0)
+    with pytest.raises(ValueError, match="does not decay"):
+        truncation.trim(t[:300], e[:300])
+    with pytest.raises(ValueError, match="positive peak"):
+        truncation.trim(t, np.zeros_like(t))

@@ -60,6 +60,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     f.add_argument("--durations", default="0:60:200", help="start:stop:count in s")
     f.add_argument("--intensities", default="0:50:200", help="start:stop:count in %% of nominal")
     f.add_argument("--denoise", default=None, help="denoise first (method name or auto)")
+    f.add_argument(
+        "--compare",
+        type=Path,
+        default=None,
+        help="second profile: overlay and difference of funnels",
+    )
     f.add_argument("--out", type=Path, required=True)
     f.set_defaults(func=_funnel)
 
@@ -235,32 +241,61 @@ def _plot_funnel(path: Path, funnels: dict, title: str) -> None:
 
 
 def _funnel(args: argparse.Namespace) -> int:
-    from twin_core.quality.funnel import funnel
+    from twin_core.quality.funnel import compare_funnels, funnel
     from twin_core.rtd import denoise as D
-    from twin_core.rtd.profiles import e_curve
+    from twin_core.rtd.profiles import e_curve, load_csv
 
     try:
-        prof = _load(args)
-        y = prof.c if not args.denoise else D.denoise(prof.c, args.denoise).y
-        f = funnel(
-            prof.t,
-            e_curve(prof.t, y),
-            _range(args.durations, "durations"),
-            _range(args.intensities, "intensities"),
-            args.limit,
-        )
+        durations = _range(args.durations, "durations")
+        intensities = _range(args.intensities, "intensities")
+        profiles = [_load(args)]
+        if args.compare is not None:
+            profiles.append(
+                load_csv(args.compare, time_unit=args.time_unit, conc_unit=args.conc_unit)
+            )
+        funnels = {}
+        for i, prof in enumerate(profiles):
+            y = prof.c if not args.denoise else D.denoise(prof.c, args.denoise).y
+            label = prof.name or f"profile {i + 1}"
+            if label in funnels:
+                label = f"{label} ({i + 1})"
+            funnels[label] = funnel(prof.t, e_curve(prof.t, y), durations, intensities, args.limit)
         out: Path = args.out
         out.mkdir(parents=True, exist_ok=True)
-        _write_json(out / "funnel.json", f.as_dict())
+        f = next(iter(funnels.values()))
+        res = {"funnels": {k: v.as_dict() for k, v in funnels.items()}}
+        cols = [f.durations]
+        header = ["duration_s"]
+        for k, v in funnels.items():
+            cols += [v.m, v.h_crit]
+            header += [f"max_window_fraction[{k}]", f"critical_intensity_pct[{k}]"]
         np.savetxt(
             out / "funnel.csv",
-            np.column_stack([f.durations, f.m, f.h_crit]),
+            np.column_stack(cols),
             delimiter=",",
-            header="duration_s,max_window_fraction,critical_intensity_pct",
+            header=",".join(header),
             comments="",
         )
-        _plot_funnel(out / "funnel.png", {prof.name or "profile": f}, "funnel plot")
-        print(json.dumps(f.as_dict()))
+        _plot_funnel(
+            out / "funnel.png", funnels, "funnel plot" if len(funnels) == 1 else "funnel overlay"
+        )
+        if len(funnels) == 2:
+            a, b = funnels.values()
+            res["comparison"] = compare_funnels(a, b)
+            plt = _plt()
+            fig, ax = plt.subplots(figsize=(6.5, 5))
+            diff = (b.max_dev - a.max_dev).T
+            lim = float(np.max(np.abs(diff))) or 1.0
+            cs = ax.pcolormesh(a.durations, a.intensities, diff, cmap="RdBu_r", vmin=-lim, vmax=lim)
+            fig.colorbar(cs, ax=ax, label="max deviation, second - first (%)")
+            ax.set_xlabel("disturbance duration (s)")
+            ax.set_ylabel("disturbance intensity (% of nominal)")
+            ax.set_title("funnel difference")
+            fig.tight_layout()
+            fig.savefig(out / "funnel_difference.png", dpi=120)
+            plt.close(fig)
+        _write_json(out / "funnel.json", res)
+        print(json.dumps(res, default=_json_default))
         return 0
     except ValueError as exc:
         return _fail(exc)

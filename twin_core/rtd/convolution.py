@@ -16,6 +16,8 @@ __all__ = [
     "convolve_rtds",
     "cumulative",
     "frequency_response",
+    "series",
+    "parallel",
 ]
 
 
@@ -113,3 +115,27 @@ def frequency_response(
     for i in range(0, w.size, chunk):
         g[i : i + chunk] = np.exp(-1j * np.outer(w[i : i + chunk], tt)) @ (ee * wts)
     return np.abs(g), np.unwrap(np.angle(g)), g
+
+
+def series(t: ArrayLike, *es: ArrayLike) -> NDArray[np.float64]:
+    """RTD of several units in series, E = E_1 * E_2 * ... (repeated :func:`convolve_rtds`);
+    e.g. a Zusatz-style combination of a PFR, tanks and dispersion (rtdpy "combinations")."""
+    if len(es) < 1:
+        raise ValueError("es must hold at least one RTD, got none")
+    out = np.asarray(es[0], dtype=float)
+    for e in es[1:]:
+        out = convolve_rtds(t, out, e)
+    return out
+
+
+def parallel(fractions: ArrayLike, *es: ArrayLike) -> NDArray[np.float64]:
+    """RTD of parallel flow paths: E = sum_i f_i E_i with sum f_i = 1 (Levenspiel 1999 ch. 12)."""
+    f = np.asarray(fractions, dtype=float)
+    if f.ndim != 1 or f.size != len(es) or f.size == 0:
+        raise ValueError(f"fractions must have one entry per RTD ({len(es)}), got {f.shape}")
+    if np.any(f < 0) or not np.isclose(f.sum(), 1.0):
+        raise ValueError(f"fractions must be >= 0 and sum to 1, got {f.tolist()}")
+    arrs = [np.asarray(e, dtype=float) for e in es]
+    if any(a.shape != arrs[0].shape for a in arrs):
+        raise ValueError("es must share one shape")
+    return np.sum([fi * a for fi, a in zip(f, arrs)], axis=0)

@@ -30,6 +30,7 @@ __all__ = [
     "truncate_pat",
     "two_peak_profiles",
     "baseline_correct",
+    "trim",
     "TruncationSpec",
     "parse_spec",
 ]
@@ -99,6 +100,45 @@ def baseline_correct(t: ArrayLike, y: ArrayLike, t_baseline: float = 120.0) -> N
     seed's workflow, offered because the offset biases the area and hence E)."""
     _, mu, _ = pat_level(t, y, 0.0, t_baseline)
     return _y(y) - mu
+
+
+def trim(
+    t: ArrayLike,
+    e: ArrayLike,
+    start_loss: float = 1e-4,
+    end_loss: float = 1e-3,
+    max_end_fraction: float = 0.05,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Trim an RTD to where its cumulative mass lies in [start_loss, 1 - end_loss] (shorter
+    arrays, as bio-rtd's trimming) with sanity checks: ValueError if the profile does not decay
+    (last value above `max_end_fraction` of the peak: the tail was cut by the measurement) or if
+    the area is not positive. Returns (t, e) with e renormalized to area 1."""
+    from twin_core.rtd.convolution import cumulative
+
+    tt, ee = np.asarray(t, float), _y(e)
+    if tt.shape != ee.shape:
+        raise ValueError(f"e must have the shape of t {tt.shape}, got {ee.shape}")
+    if not (0 <= start_loss < 0.5 and 0 <= end_loss < 0.5):
+        raise ValueError(
+            f"start_loss and end_loss must be in [0, 0.5), got {start_loss!r}, {end_loss!r}"
+        )
+    peak = float(np.max(ee))
+    if not peak > 0:
+        raise ValueError(f"e must have a positive peak, got {peak!r}")
+    if ee[-1] > max_end_fraction * peak:
+        raise ValueError(
+            f"profile does not decay: last value is {ee[-1] / peak:.1%} of the peak "
+            f"(max_end_fraction={max_end_fraction!r}); measure longer"
+        )
+    f = cumulative(tt, np.clip(ee, 0, None))
+    if not f[-1] > 0:
+        raise ValueError(f"e must have a positive area, got {f[-1]!r}")
+    f /= f[-1]
+    i0 = max(int(np.searchsorted(f, start_loss, side="right")) - 1, 0)
+    i1 = min(int(np.searchsorted(f, 1.0 - end_loss, side="left")) + 1, tt.size)
+    ts, es = tt[i0:i1], ee[i0:i1]
+    area = float(np.sum(0.5 * (es[1:] + es[:-1]) * np.diff(ts)))
+    return ts, es / area
 
 
 def two_peak_profiles(
