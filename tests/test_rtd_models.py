@@ -123,6 +123,18 @@ def test_cstr_pfr_and_emg_and_zusatz_moments():
     assert m == pytest.approx(2.0 + 10.0 * k**0.25 * special.gamma(0.75), rel=1e-4)
 
 
+def test_convection_and_high_pe_models():
+    """Laminar convection E = tau^2/(2 t^3), t >= tau/2: area 1 and mean tau (Levenspiel 1999
+    Eq. 15.3); the small-dispersion model has mean tau_d + tau and variance 2 tau^2/Pe (Eq. 13.8)."""
+    t = np.geomspace(5.0, 20000, 400_001)  # starts at the jump t = tau/2
+    e = M.convection(t, 10.0)
+    assert trapezoid(e, t) == pytest.approx(1.0, abs=1e-3)
+    assert trapezoid(t * e, t) == pytest.approx(10.0 - 10.0**2 / (2 * 20000), rel=1e-3)
+    a, m, v, _ = _moments(T, M.plug_flow_dispersion_high_pe(T, 5.0, 20.0, 400.0))
+    assert (a, m) == (pytest.approx(1.0, abs=1e-6), pytest.approx(25.0, rel=1e-6))
+    assert v == pytest.approx(2 * 20.0**2 / 400.0, rel=1e-4)
+
+
 def test_dead_volume_and_bypass_variants():
     """Dead (exchanging) volume keeps area 1 and multiplies the dispersion mean by (1 + r)
     (mobile-immobile model, van Genuchten & Wierenga 1976); r = 0 gives the plain model; bypass

@@ -157,6 +157,9 @@ def _analyze(args: argparse.Namespace) -> int:
             }
         y_clean = y.copy()
         if args.denoise:
+            steps = np.diff(t)
+            if np.ptp(steps) > 0.01 * np.median(steps):
+                raise ValueError("denoise needs uniformly sampled t (steps vary by more than 1 %)")
             d = D.denoise(y, args.denoise)
             y = d.y
             report["denoise"] = {

@@ -34,6 +34,7 @@ __all__ = [
     "tanks_in_series",
     "cstr_pfr",
     "cstr",
+    "convection",
     "plug_flow_dispersion_high_pe",
     "emg",
     "zusatz",
@@ -259,6 +260,20 @@ def cstr_pfr(t: ArrayLike, tau_pfr: float, tau_cstr: float) -> NDArray:
 def cstr(t: ArrayLike, tau: float) -> NDArray:
     """Single ideal CSTR, E(t) = exp(-t/tau)/tau for t > 0 (Levenspiel 1999 ch. 11)."""
     return cstr_pfr(t, 0.0, tau)
+
+
+def convection(t: ArrayLike, tau: float) -> NDArray:
+    """Pure convection in laminar pipe flow (no diffusion), as rtdpy's Convection model.
+
+    E(t) = tau^2 / (2 t^3) for t >= tau/2, 0 before (Levenspiel 1999 Eq. 15.3). Mean tau; the
+    variance is infinite (the tail decays as t^-3).
+    """
+    tt = _as_t(t)
+    tau = _check("tau", tau)
+    out = np.zeros_like(tt)
+    m = tt >= tau / 2
+    out[m] = tau**2 / (2 * tt[m] ** 3)
+    return out
 
 
 def plug_flow_dispersion_high_pe(t: ArrayLike, tau_d: float, tau: float, pe: float) -> NDArray:
