@@ -38,7 +38,7 @@ def test_feasible_area_and_comparison():
     t = np.arange(0.0, 300.0, 0.5)
     wide = funnel(t, axial_dispersion_open(t, 11.92, 16.37, 7.67))
     narrow = funnel(t, axial_dispersion_open(t, 11.92, 16.37, 15.0))
-    h = np.clip(wide.h_crit, 0, 100)
+    h = np.clip(wide.h_crit, 0, 50)
     assert wide.feasible_area == pytest.approx(np.trapezoid(h, wide.durations))
     assert abs(wide.feasible_fraction - wide.feasible.mean()) < 0.02
     c = compare_funnels(wide, narrow)

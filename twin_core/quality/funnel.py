@@ -114,12 +114,12 @@ def funnel(
     intensities: ArrayLike | None = None,
     limit: float = 5.0,
 ) -> FunnelResult:
-    """Funnel grid by the closed form h M(d). Defaults: 200 durations 0-120 s,
-    200 intensities 0-100 % of nominal."""
+    """Funnel grid by the closed form h M(d). Defaults: 200 durations 0-60 s,
+    200 intensities 0-50 % of nominal (as the CLI)."""
     if not limit > 0:
         raise ValueError(f"limit must be > 0, got {limit!r}")
-    d = np.linspace(0.0, 120.0, 200) if durations is None else np.asarray(durations, float)
-    h = np.linspace(0.0, 100.0, 200) if intensities is None else np.asarray(intensities, float)
+    d = np.linspace(0.0, 60.0, 200) if durations is None else np.asarray(durations, float)
+    h = np.linspace(0.0, 50.0, 200) if intensities is None else np.asarray(intensities, float)
     if d.ndim != 1 or h.ndim != 1 or d.size < 2 or h.size < 2:
         raise ValueError("durations and intensities must be 1-D with >= 2 values")
     if np.any(h < 0):
