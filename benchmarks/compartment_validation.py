@@ -30,6 +30,7 @@ import numpy as np  # noqa: E402
 from twin_core.compartment import (  # noqa: E402
     CompartmentModel,
     CompartmentNetwork,
+    blender_rtd,
     compare_rtd,
     first_passage_network,
     fit_rsd_decay,
@@ -42,6 +43,7 @@ from twin_core.compartment import (  # noqa: E402
     to_blender_model,
 )
 from twin_core.compartment.flows import cell_flows_from_crossings  # noqa: E402
+from twin_core.compartment.network import chain_periodic  # noqa: E402
 from twin_core.compartment.radial import (  # noqa: E402
     grid_rsd_from_compartments,
     section_concentrations,
@@ -105,8 +107,8 @@ def main() -> None:
                 r = compare_rtd(t, m.section_.impulse_response(t), e_ref=e_ref)
                 name = f"{'+'.join(variables)}, tol {tol}, min {mc}: {m.n_compartments_} comp."
                 print(row(name, r))
-    fp = first_passage_network(base.periodic_, 2).impulse_response(t)
-    print(row("default, first-passage form (not the product)", compare_rtd(t, fp, e_ref=e_ref)))
+    cc = base.closed_section_.impulse_response(t)
+    print(row("default, closed-closed cut (not the product)", compare_rtd(t, cc, e_ref=e_ref)))
     print(
         row(
             "every cell a compartment, closed-closed cut (the cut's own error)",
@@ -141,56 +143,88 @@ def main() -> None:
     n_part = int(round(fields.occupancy[base.mask_].sum()))
     p = cells.holdup / cells.holdup.sum()
     start = rng.choice(cells.n, size=n_part, p=p)
-    is_tracer = cells.centroid[start, 1] < 0.5 * (fields.y_edges[0] + fields.y_edges[-1])
+    y_mid = 0.5 * (fields.y_edges[0] + fields.y_edges[-1])
+    is_tracer = cells.centroid[start, 1] < y_mid
     tm = np.linspace(0.0, 3.0 * tau, 61)
     snaps = walk_snapshots(cells, start, tm, seed=3)
     coarse = coarse_index(fields, base.mask_, (10, 6, 6))
+    ppk = 1.0 / fields.particle_mass_kg
     r_dem = grid_rsd_from_particles(snaps, is_tracer, coarse, 360)
     c0 = split_initial(fields, base.labels_, axis=1)
     c = section_concentrations(base.periodic_, c0, tm)
-    r_cm, r_cm_s = grid_rsd_from_compartments(
-        c,
-        base.labels_,
-        fields.holdup_kg,
-        coarse,
-        360,
-        particles_per_kg=1.0 / fields.particle_mass_kg,
+    _, r_cm_s = grid_rsd_from_compartments(
+        c, base.labels_, fields.holdup_kg, coarse, 360, particles_per_kg=ppk
+    )
+    lab_cells = np.full(fields.shape, -1, dtype=np.int64)
+    lab_cells[base.mask_] = np.arange(cells.n)
+    c_cells = section_concentrations(cells, (cells.centroid[:, 1] < y_mid).astype(float), tm)
+    _, r_cells_s = grid_rsd_from_compartments(
+        c_cells, lab_cells, fields.holdup_kg, coarse, 360, particles_per_kg=ppk
     )
     seed = base.seed_flows_
     seed_net = CompartmentNetwork(base.holdup_kg_, seed.src, seed.dst, seed.rate)
     r_seed = section_rsd(seed_net, c0, tm)
     r_comp = section_rsd(base.periodic_, c0, tm)
-    print(f"{n_part} walkers; 10x6x6 sampling cells")
+    print(f"{n_part} walkers; 10 x 6 x 6 sampling cells; '+ floor': binomial sampling variance")
     print(
-        "| t (s) | surrogate grid RSD | model grid RSD | + sampling floor | model Eq. 2 "
-        "| seed flows Eq. 2 |"
+        "| t (s) | surrogate grid RSD | model grid RSD + floor | cell network grid RSD + floor "
+        "| model Eq. 2 | seed flows Eq. 2 |"
     )
     print("|---|---|---|---|---|---|")
     for k in range(0, tm.size, 6):
         print(
-            f"| {tm[k]:.2f} | {r_dem[k]:.3f} | {r_cm[k]:.3f} | {r_cm_s[k]:.3f} "
+            f"| {tm[k]:.2f} | {r_dem[k]:.3f} | {r_cm_s[k]:.3f} | {r_cells_s[k]:.3f} "
             f"| {r_comp[k]:.3f} | {r_seed[k]:.3f} |"
         )
     late = tm > 2 * tau
     print(
-        f"RMS(surrogate - model with floor) = {np.sqrt(np.mean((r_dem - r_cm_s) ** 2)):.3f}; "
+        f"RMS(surrogate - model+floor) = {np.sqrt(np.mean((r_dem - r_cm_s) ** 2)):.3f}, "
+        f"RMS(surrogate - cell network+floor) = {np.sqrt(np.mean((r_dem - r_cells_s) ** 2)):.3f}; "
         f"plateau t > 2 tau: surrogate {r_dem[late].mean():.3f}, model+floor "
-        f"{r_cm_s[late].mean():.3f}, seed flows {r_seed[late].mean():.3f}"
+        f"{r_cm_s[late].mean():.3f}, seed flows (Eq. 2) {r_seed[late].mean():.3f}"
     )
 
     print("\n## 4. Eq. (10) and the whole blender")
+    for name, y in (
+        ("model, Eq. 2", r_comp),
+        ("surrogate grid RSD", r_dem),
+        ("cell network grid RSD + floor", r_cells_s),
+    ):
+        fit = fit_rsd_decay(tm, y)
+        print(
+            f"Eq. 10 fit ({name}): RSD_ss {fit['rsd_ss']:.3g} +/- {fit['rsd_ss_se']:.1g}, "
+            f"RSD_0 {fit['rsd_0']:.3g} +/- {fit['rsd_0_se']:.1g}, "
+            f"k_b {fit['k_b']:.3g} +/- {fit['k_b_se']:.1g} 1/s"
+        )
     fit = fit_rsd_decay(tm, r_comp)
-    print("Eq. 10 fit (model, Eq. 2): " + ", ".join(f"{k} {v:.4g}" for k, v in fit.items()))
-    fit_d = fit_rsd_decay(tm, r_dem)
-    print("Eq. 10 fit (surrogate grid RSD): " + ", ".join(f"{k} {v:.4g}" for k, v in fit_d.items()))
     bm = to_blender_model(base, n_sections=8, rsd_fit=fit)
     tb = np.linspace(0.0, 4.0 * bm.mean_residence_time_s, 4001)
     a, mb, vb = rtd_moments(tb, bm.impulse_response(tb))
     print(
-        f"8 sections: area {a:.6f}, mean {mb:.3f} s (8 V/Q = {bm.mean_residence_time_s:.3f}), "
-        f"var {vb:.2f} s^2; 8 x surrogate section var = {8 * v_ref:.2f} s^2; "
-        f"mean axial velocity v_x = {base.axial_velocity_m_s_:.4f} m/s"
+        f"8 sections (product): area {a:.6f}, mean {mb:.3f} s (8 V/Q = "
+        f"{bm.mean_residence_time_s:.3f}), var {vb:.2f} s^2; 8 x surrogate section var = "
+        f"{8 * v_ref:.2f} s^2; mean axial velocity v_x = {base.axial_velocity_m_s_:.4f} m/s"
     )
+    small = synthetic_blender_fields(6, 10, 10).fields if not args.fields else fields
+    ms = CompartmentModel().fit(small)
+    cs, _ = cell_network(small, cell_flows_from_crossings(small), ms.mask_)
+    n = 8
+    tb = np.linspace(0.0, 4.0 * n * ms.mean_residence_time_s_, 2001)
+    t0 = time.perf_counter()
+    truth = chain_periodic(cs, n).impulse_response(tb)
+    t_truth = time.perf_counter() - t0
+    print(
+        f"\nwhole blender, {n} sections, reference = cell-level surrogate joined face to face "
+        f"({cs.n * n} states, {t_truth:.1f} s); model {ms.n_compartments_} compartments/section"
+    )
+    print("| whole-blender model | mean | ref | err | var | ref | err | KS | W1/mean |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, e in (
+        ("product: transit section, convolution", blender_rtd(ms.section_, n, tb)),
+        ("closed-closed sections, convolution", blender_rtd(ms.closed_section_, n, tb)),
+        ("compartments joined face to face", chain_periodic(ms.periodic_, n).impulse_response(tb)),
+    ):
+        print(row(name, compare_rtd(tb, e, e_ref=truth)))
 
 
 if __name__ == "__main__":

@@ -42,7 +42,7 @@ def test_without_crossings(case):
         (lambda d: d.pop("velocity"), "missing key 'velocity'"),
         (lambda d: d.__setitem__("velocity", np.zeros((5, 6, 6))), "'velocity' must have shape"),
         (lambda d: d.__setitem__("occupancy", -np.ones((5, 6, 6))), "'occupancy' must be >= 0"),
-        (lambda d: d.__setitem__("solid_fraction", 2 * np.ones((5, 6, 6))), "'solid_fraction'"),
+        (lambda d: d.__setitem__("solid_fraction", -np.ones((5, 6, 6))), "'solid_fraction'"),
         (lambda d: d.__setitem__("duration_s", 0.0), "'duration_s' must be > 0"),
         (lambda d: d.__setitem__("x_edges", np.array([0.0, 1.0, 0.5, 2, 3, 4])), "increasing"),
         (lambda d: d.pop("crossings_y"), "missing \\['crossings_y'\\]"),

@@ -39,6 +39,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--rpm", type=float, default=None, help="blade speed basis of the fields")
     b.add_argument("--split-axis", type=int, default=1, help="axis of the two-type RSD split")
     b.add_argument(
+        "--rsd-source",
+        default="cells",
+        choices=("cells", "compartments"),
+        help="network whose RSD(t) gives the Eq. (10) parameters: every cell a compartment "
+        "(sampled on --rsd-grid with the particle sampling floor, like the DEM grid RSD) or "
+        "the compartments (Eq. 2; lumping mixes too fast)",
+    )
+    b.add_argument(
+        "--rsd-grid",
+        type=int,
+        nargs=3,
+        default=(10, 6, 6),
+        metavar=("NX", "NY", "NZ"),
+        help="sampling cells of the grid RSD (seed B.1: 10 x 6 x 6)",
+    )
+    b.add_argument(
         "--transit-times",
         type=Path,
         default=None,
@@ -121,7 +137,13 @@ def cmd_build(args: argparse.Namespace) -> int:
         c0 = split_initial(fields, model.labels_, axis=args.split_axis)
         t_mix = _mixing_grid(model)
         rsd_t = section_rsd(model.periodic_, c0, t_mix)
-        fit = fit_rsd_decay(t_mix, rsd_t)
+        fit_comp = fit_rsd_decay(t_mix, rsd_t)
+        rsd_grid = None
+        if args.rsd_source == "cells":
+            rsd_grid = _cell_grid_rsd(fields, model, args, t_mix)
+            fit = fit_rsd_decay(t_mix, rsd_grid)
+        else:
+            fit = fit_comp
         bm = to_blender_model(
             model,
             n_sections=args.sections,
@@ -136,7 +158,9 @@ def cmd_build(args: argparse.Namespace) -> int:
     report = {
         **model.summary(),
         "build_s": t_build,
+        "rsd_source": args.rsd_source,
         "rsd_fit": fit,
+        "rsd_fit_compartments_eq2": fit_comp,
         "blender_mean_residence_time_s": bm.mean_residence_time_s,
         "model": str(args.out),
     }
@@ -164,7 +188,18 @@ def cmd_build(args: argparse.Namespace) -> int:
     print(json.dumps(report, indent=1, default=float))
     if args.figures is not None:
         write_build_figures(
-            args.figures, fields, model, t_rtd, e_sec, samples, validation, t_mix, rsd_t, fit, bm
+            args.figures,
+            fields,
+            model,
+            t_rtd,
+            e_sec,
+            samples,
+            validation,
+            t_mix,
+            rsd_t,
+            fit,
+            bm,
+            rsd_grid,
         )
     return 0
 
@@ -182,13 +217,40 @@ def _load_transit_times(path: Path) -> np.ndarray:
     return np.asarray(data, dtype=float)
 
 
+def _cell_grid_rsd(fields, model, args, t_mix: np.ndarray) -> np.ndarray:
+    """Grid RSD (seed Eq. B.1) of the cell-level network with the binomial sampling floor of
+    the DEM's particles: the radial-mixing curve a DEM grid RSD would show."""
+    from twin_core.compartment import CompartmentModel
+    from twin_core.compartment.radial import (
+        grid_rsd_from_compartments,
+        section_concentrations,
+        split_initial,
+    )
+    from twin_core.compartment.surrogate import coarse_index
+
+    cells = CompartmentModel(resolution="cells", flow_source=model.flow_source_).fit(fields)
+    c0 = split_initial(fields, cells.labels_, axis=args.split_axis)
+    c = section_concentrations(cells.periodic_, c0, t_mix)
+    bins = tuple(args.rsd_grid)
+    coarse = coarse_index(fields, cells.mask_, bins)
+    _, r = grid_rsd_from_compartments(
+        c,
+        cells.labels_,
+        fields.holdup_kg,
+        coarse,
+        int(np.prod(bins)),
+        particles_per_kg=1.0 / fields.particle_mass_kg,
+    )
+    return r
+
+
 def _mixing_grid(model) -> np.ndarray:
     """Times for the radial-mixing RSD: up to 3 x the section residence time."""
     return np.linspace(0.0, 3.0 * model.mean_residence_time_s_, 301)
 
 
 def write_build_figures(
-    out, fields, model, t_rtd, e_sec, samples, validation, t_mix, rsd_t, fit, bm
+    out, fields, model, t_rtd, e_sec, samples, validation, t_mix, rsd_t, fit, bm, rsd_grid=None
 ) -> list[Path]:
     """Zone maps, compartment maps, network graph, RTD comparison and RSD (PNG files)."""
     import matplotlib
@@ -277,7 +339,7 @@ def write_build_figures(
             alpha=0.4,
             label=f"{validation} (n={fin.size})",
         )
-    ax.plot(t_rtd, e_sec, "k-", label="compartment model, open section")
+    ax.plot(t_rtd, e_sec, "k-", label=f"compartment model ({model.section_form} form)")
     ax.axvline(model.mean_residence_time_s_, color="k", ls=":", label="V/Q")
     ax.set_xlabel("t (s)")
     ax.set_ylabel("E(t) (1/s)")
@@ -294,7 +356,9 @@ def write_build_figures(
     plt.close(fig)
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    axes[0].plot(t_mix, rsd_t, "k.", ms=3, label="compartment model (Eq. 2)")
+    axes[0].plot(t_mix, rsd_t, "k.", ms=3, label="compartments (Eq. 2)")
+    if rsd_grid is not None:
+        axes[0].plot(t_mix, rsd_grid, "b.", ms=3, label="cell network: grid RSD + sampling")
     axes[0].plot(
         t_mix,
         rsd_decay(t_mix, fit["rsd_ss"], fit["rsd_0"], fit["k_b"]),

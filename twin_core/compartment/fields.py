@@ -9,7 +9,8 @@ key                 shape            meaning
 ``y_edges``         (ny+1,)          cell edges along y (m)
 ``z_edges``         (nz+1,)          cell edges along z (m)
 ``velocity``        (nx,ny,nz,3)     time-averaged particle velocity (m/s)
-``solid_fraction``  (nx,ny,nz)       time-averaged solid volume fraction (-), in [0, 1]
+``solid_fraction``  (nx,ny,nz)       time-averaged solid volume fraction (-), >= 0 (a
+                                     centre-counting estimate may pass 1 in small cells)
 ``occupancy``       (nx,ny,nz)       time-averaged particle count in the cell (-)
 ``crossings_x``     (nx,ny,nz,2)     particles crossing the + face of cell (i,j,k):
 ``crossings_y``                      [...,0] in the + direction, [...,1] in the -
@@ -148,7 +149,7 @@ def validate_fields(data: Mapping[str, Any]) -> GridFields:
     """Validate a mapping in the npz grid-field format and return :class:`GridFields`.
 
     Checks presence, dtype, shape (against the edge arrays), finiteness, monotone edges,
-    ranges (solid fraction in [0, 1], occupancy and crossings >= 0, duration and particle
+    ranges (solid fraction, occupancy and crossings >= 0, duration and particle
     mass > 0) and the closed-axis rule (the last + face of a non-periodic axis carries no
     crossings).  Raises ``ValueError`` naming the key.
     """
@@ -176,10 +177,8 @@ def validate_fields(data: Mapping[str, Any]) -> GridFields:
     if sf.shape != shape:
         raise ValueError(f"fields: key 'solid_fraction' must have shape {shape}, got {sf.shape}")
     _finite("solid_fraction", sf)
-    if sf.min() < 0 or sf.max() > 1:
-        raise ValueError(
-            f"fields: key 'solid_fraction' must lie in [0, 1], got [{sf.min()}, {sf.max()}]"
-        )
+    if sf.min() < 0:
+        raise ValueError(f"fields: key 'solid_fraction' must be >= 0, got min {sf.min()}")
     occ = _array(data, "occupancy").astype(float)
     if occ.shape != shape:
         raise ValueError(f"fields: key 'occupancy' must have shape {shape}, got {occ.shape}")

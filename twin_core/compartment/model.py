@@ -73,6 +73,9 @@ class CompartmentModel:
     section_form : "transit" (record-passage first-passage network, default) or "closed"
         (closed-closed cut of the periodic face) for ``section_``.
     n_upstream : upstream copies of the transit form (2 leaves a truncation error < 1e-4).
+    resolution : "zones" (compartments from the zone maps) or "cells" (every occupied cell
+        its own compartment: the finest network, used for radial mixing, where lumping
+        mixes too fast).
     axial_axis : index of the periodic axial axis (0 = x).
 
     Attributes after :meth:`fit`: ``mask_``, ``zones_`` (variable -> zone map), ``maps_``
@@ -97,6 +100,7 @@ class CompartmentModel:
         projection_weights: str = "uniform",
         section_form: str = "transit",
         n_upstream: int = 2,
+        resolution: str = "zones",
         axial_axis: int = 0,
     ) -> None:
         self.variables = tuple(variables)
@@ -108,6 +112,7 @@ class CompartmentModel:
         self.projection_weights = projection_weights
         self.section_form = section_form
         self.n_upstream = n_upstream
+        self.resolution = resolution
         self.axial_axis = axial_axis
 
     def _check(self, fields: GridFields) -> None:
@@ -126,6 +131,8 @@ class CompartmentModel:
             raise ValueError(
                 f"section_form must be 'transit' or 'closed', got {self.section_form!r}"
             )
+        if self.resolution not in ("zones", "cells"):
+            raise ValueError(f"resolution must be 'zones' or 'cells', got {self.resolution!r}")
         if self.n_upstream < 0:
             raise ValueError(f"n_upstream must be >= 0, got {self.n_upstream}")
         if self.min_cells < 1:
@@ -161,9 +168,16 @@ class CompartmentModel:
             raise ValueError("fields: no occupied cell (occupancy is zero everywhere)")
         self.zones_ = self.zone(fields)
         self.maps_ = {v: slice_components(z, axis=ax) for v, z in self.zones_.items()}
-        labels = overlay_maps(list(self.maps_.values()), axis=ax)
-        if self.min_cells > 1:
-            labels = merge_small(labels, self.min_cells, axis=ax)
+        if self.resolution == "cells":
+            labels = np.full(fields.shape, -1, dtype=np.int32)
+            order = np.moveaxis(self.mask_, ax, 0)
+            lab = np.full(order.shape, -1, dtype=np.int32)
+            lab[order] = np.arange(int(order.sum()), dtype=np.int32)
+            labels = np.moveaxis(lab, 0, ax)
+        else:
+            labels = overlay_maps(list(self.maps_.values()), axis=ax)
+            if self.min_cells > 1:
+                labels = merge_small(labels, self.min_cells, axis=ax)
         self.labels_ = labels
         n = int(labels.max()) + 1
         self.n_compartments_ = n

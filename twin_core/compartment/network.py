@@ -174,7 +174,7 @@ def _propagate(
     m = np.asarray(m0, dtype=float)
     if t[0] > 0:
         m = expm(A * t[0]) @ m
-    if n > 3000:
+    if n > 1200:
         Asp = net.rate_matrix().tocsc()
         ms = expm_multiply(Asp, m, start=0.0, stop=t[-1] - t[0], num=t.size, endpoint=True)
         return ms @ dvec, ms.sum(axis=1)
