@@ -162,6 +162,9 @@ class LineSpec(StrictModel):
     history_samples: int = Field(
         20000, ge=1, description="samples per key cached by publishers for late/restarted peers"
     )
+    express: bool = Field(
+        False, description="zenoh express (no batching): lower latency, lower throughput"
+    )
     state_dir: str = Field(".twin-state", description="where services keep restart state")
     record_path: str | None = Field(None, description="MCAP file written by the recorder")
 

@@ -41,7 +41,12 @@ class HistoryPublisher:
     """Publishes messages of one model on one key with a history cache (zenoh advanced publisher)."""
 
     def __init__(
-        self, svc: Service, key: str, model: type[Message] | None, cache_samples: int
+        self,
+        svc: Service,
+        key: str,
+        model: type[Message] | None,
+        cache_samples: int,
+        express: bool = False,
     ) -> None:
         keys_mod.parse_key(key)
         self.key = key
@@ -56,6 +61,7 @@ class HistoryPublisher:
             cache=zext.CacheConfig(max_samples=cache_samples),
             sample_miss_detection=zext.MissDetectionConfig(heartbeat=0.5),
             publisher_detection=True,
+            express=express,
         )
 
     def publish(self, msg: Message | dict[str, Any]) -> Message:
@@ -181,7 +187,9 @@ class LiveService(Service):
 
     # -- declarations ------------------------------------------------------------------------
     def history_publisher(self, key: str, model: type[Message] | None) -> HistoryPublisher:
-        pub = HistoryPublisher(self, key, model, self.spec.history_samples)
+        pub = HistoryPublisher(
+            self, key, model, self.spec.history_samples, express=self.spec.express
+        )
         self._entities.append(pub)
         return pub
 

@@ -89,6 +89,7 @@ def spec_for_recording(rec: Any, port: int, state_dir: Path, base: Path = BASE_C
         bus={"mode": "router", "listen": [f"tcp/127.0.0.1:{port}"], "connect": []},
         services=["feeder", "blender", "rtd", "oos", "recorder"],
         feeder_mode="replay",
+        express=False,  # high-speed replay: batching beats per-message latency
         state_dir=str(state_dir),
         record_path="twin-demo.mcap",
     )
