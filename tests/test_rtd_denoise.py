@@ -59,18 +59,35 @@ def test_wavelet_default_level_is_matlab_rule():
     assert D.wavelet_level(64) == pywt.dwt_max_level(64, 8)
 
 
-def test_ebayes_posterior_median_properties():
-    """Empirical Bayes posterior median (Johnstone & Silverman 2005): a thresholding rule (zero
-    for small |x|), odd, and for large x the posterior median tends to x - a (Laplace a = 0.5)."""
+@pytest.mark.parametrize("prior,far", [("cauchy", 20.0 - 2.0 / 20.0), ("laplace", 19.5)])
+def test_ebayes_posterior_median_properties(prior, far):
+    """Empirical Bayes posterior median (Johnstone & Silverman 2005): a thresholding rule, odd
+    and monotone; for large x it tends to x - 2/x (quasi-Cauchy, the MATLAB wdenoise prior) or
+    x - a (Laplace, a = 0.5); mostly zeros on pure noise."""
     rng = np.random.default_rng(0)
     x = np.r_[rng.normal(size=500), 20.0, -20.0, 8.0]
-    mu, w = D.ebayes_posterior_median(x)
+    mu, w = D.ebayes_posterior_median(x, prior)
     assert 0 < w < 1
     assert np.mean(mu[:500] == 0) > 0.9
-    assert mu[500] == pytest.approx(19.5, abs=1e-3)
-    assert mu[501] == pytest.approx(-19.5, abs=1e-3)
+    assert mu[500] == pytest.approx(far, abs=1e-3)
+    assert mu[501] == pytest.approx(-far, abs=1e-3)
     order = np.argsort(x)
-    assert np.all(np.diff(mu[order]) >= -1e-12)
+    assert np.all(np.diff(mu[order]) >= -1e-9)
+
+
+@pytest.mark.parametrize("prior", ["cauchy", "laplace"])
+def test_ebayes_threshold_consistent_with_median(prior):
+    """The posterior median is exactly zero below the threshold t(w) given by the threshold
+    equation and positive above it: two independent formulas of Johnstone & Silverman (2005)
+    agree."""
+    for w in (0.02, 0.1, 0.5):
+        t = D.threshold_from_weight(w, prior)
+        assert t > 0
+        if prior == "cauchy":
+            lo, hi = D._postmed_cauchy(np.array([t - 1e-4, t + 1e-4]), w)
+        else:
+            lo, hi = D._postmed_laplace(np.array([t - 1e-4, t + 1e-4]), w, 0.5)
+        assert lo == 0 and 0 < hi < 0.05
 
 
 def test_denoising_reduces_error_to_truth():
@@ -123,3 +140,22 @@ def test_denoise_errors():
         D.fft_lowpass(Y, 0)
     with pytest.raises(ValueError, match="y must be finite"):
         D.denoise(np.r_[Y[:10], np.nan])
+
+
+@pytest.mark.parametrize("prior", ["cauchy", "laplace"])
+def test_weight_threshold_roundtrip(prior):
+    """The lower weight bound w_lo (threshold at sqrt(2 log n)) inverts the threshold equation."""
+    for t in (1.5, 2.5, 3.7):
+        w = D._weight_from_threshold(t, prior, 0.5)
+        assert D.threshold_from_weight(w, prior) == pytest.approx(t, abs=1e-6)
+
+
+def test_wavelet_bayes_equals_per_level_pipeline():
+    """The default (MATLAB wdenoise-like) wavelet denoiser equals the explicit per-level
+    pipeline: PyWavelets sym4 wavedec, sigma = median|d1|/0.6745, quasi-Cauchy empirical Bayes
+    posterior median on every detail level, approximation kept, waverec."""
+    coeffs = pywt.wavedec(Y, "sym4", mode="symmetric", level=D.wavelet_level(Y.size))
+    sigma = np.median(np.abs(coeffs[-1])) / 0.6745
+    shrunk = [coeffs[0]] + [D.ebayes_posterior_median(c / sigma)[0] * sigma for c in coeffs[1:]]
+    ref = pywt.waverec(shrunk, "sym4", mode="symmetric")[: Y.size]
+    np.testing.assert_allclose(D.wavelet(Y), ref, atol=1e-9)
