@@ -32,7 +32,7 @@ __all__ = [
 ]
 
 #: the services ``twin up`` knows how to start
-SERVICE_NAMES = ("plant", "feeder", "blender", "rtd", "oos", "recorder")
+SERVICE_NAMES = ("plant", "feeder", "blender", "rtd", "oos", "recorder", "dem")
 
 
 class FeederLine(StrictModel):
@@ -152,7 +152,7 @@ class LineSpec(StrictModel):
     bus: BusConfig = Field(
         default_factory=lambda: BusConfig(mode="router", listen=["tcp/127.0.0.1:7447"], connect=[])
     )
-    services: list[Literal["plant", "feeder", "blender", "rtd", "oos", "recorder"]] = Field(
+    services: list[Literal["plant", "feeder", "blender", "rtd", "oos", "recorder", "dem"]] = Field(
         default_factory=lambda: ["feeder", "blender", "rtd", "oos"]
     )
     feeder_mode: Literal["replay", "simulate"] = Field(

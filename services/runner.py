@@ -38,7 +38,13 @@ def make_service(name: str, spec: LineSpec, **kwargs):
         from services.recorder import RecorderService
 
         return RecorderService(spec, **kwargs)
-    raise ValueError(f"service must be one of blender, oos, feeder, rtd, recorder, got {name!r}")
+    if name == "dem":
+        from services.dem import DemService
+
+        return DemService(spec, **kwargs)
+    raise ValueError(
+        f"service must be one of blender, oos, feeder, rtd, recorder, dem, got {name!r}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

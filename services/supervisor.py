@@ -33,7 +33,7 @@ from services.common import STATE_ENV
 
 log = logging.getLogger(__name__)
 
-SUPERVISED = ("feeder", "blender", "rtd", "oos", "recorder")
+SUPERVISED = ("feeder", "blender", "rtd", "oos", "recorder", "dem")
 
 
 @dataclass
