@@ -112,3 +112,81 @@ def test_blender_includes_announced_tracer_pulses_like_the_declared_model():
     # tracer mass is conserved; the half-bin that arrived after its tick is one tick late
     assert np.sum(pred - base) == pytest.approx(np.sum(ref - base), rel=0.01)
     assert np.max(np.abs(pred - ref)) < 0.1 * (ref.max() - base)
+
+
+def test_blender_with_a_compartment_network_export_matches_its_predict(tmp_path, capsys):
+    """Peer code: schemas.blender_model.BlenderModel.predict (compartment network of
+    twin_core.compartment) on the inlet composition; the blender service core with
+    ``kind: compartment`` uses the same export through its impulse response."""
+    from schemas.blender_model import BlenderModel
+    from services.cli.main import main
+
+    fields, model = tmp_path / "f.npz", tmp_path / "m.json"
+    assert main(["compartment", "synthetic", str(fields), "--shape", "5", "7", "7"]) == 0
+    assert (
+        main(
+            [
+                "compartment",
+                "build",
+                str(fields),
+                "--out",
+                str(model),
+                "--sections",
+                "4",
+                "--surrogate",
+                "2000",
+            ]
+        )
+        == 0
+    )
+    capsys.readouterr()
+    spec = spec_with(
+        dt_s=0.5, blender={"kind": "compartment", "export_path": str(model), "kernel_s": 200.0}
+    )
+    bm = BlenderModel.load(model)
+    t = np.arange(0, 400, 0.5)
+    api = np.where((t >= 100) & (t < 160), 1.8, 1.2)
+    exc = 12.0 - api  # constant total: the outlet is the convolution of the composition
+    bp = BlenderPredictor(spec)
+    got = {}
+    for i, ti in enumerate(t):
+        for fid, q in (("api", api[i]), ("excipient", exc[i])):
+            for tt, conc in bp.push(fid, float(ti), float(q)):
+                got[tt] = conc["api"]
+    pred = np.array([got[float(x)] for x in t])
+    ref = bm.predict(t, 100 * api / 12.0)
+    assert pred.max() > 14.0  # the step reached the outlet
+    np.testing.assert_allclose(pred, ref, atol=0.1)
+
+
+def test_blender_adopts_an_rtd_estimate():
+    """After an RTD estimate (the rtd service's message) the blender predicts with the new E(t):
+    once a kernel length has passed, equal to the declared line model with those parameters."""
+    from schemas.messages import RtdEstimate
+    from services.blender import rtd_kernel
+    from twin_core.plant import LineModel
+
+    spec = spec_with()
+    run, _ = simulate_messages(spec, 1200.0, seed=8)
+    est = RtdEstimate(
+        t=0.0,
+        seq=0,
+        model="axial_dispersion_open",
+        params={"tau_d": 8.0, "tau": 25.0, "pe": 12.0},
+        mean_residence_time_s=33.0,
+    )
+    bp = BlenderPredictor(spec)
+    got = {}
+    for i, t in enumerate(run.t_s):
+        if t == 400.0:
+            bp.set_kernel(rtd_kernel(est.model, est.params, spec.dt_s, spec.blender.kernel_s))
+        for name, rec in run.feeders.items():
+            for tt, conc in bp.push(name, float(t), float(rec.flow_kg_h[i])):
+                got[tt] = conc["api"]
+    cfg = spec.plant_config()
+    cfg.blender.params = dict(est.params)
+    ref = LineModel(cfg).outlet(run.inputs())["api"]
+    pred = np.array([got[float(t)] for t in run.t_s])
+    late = run.t_s >= 400 + spec.blender.kernel_s
+    np.testing.assert_allclose(pred[late], ref[late], atol=1e-6)
+    assert np.max(np.abs(pred[run.t_s < 400] - ref[run.t_s < 400])) > 1e-3  # old model before
