@@ -42,7 +42,7 @@ def blender_rtd(
     section: CompartmentNetwork,
     n_sections: int,
     t: np.ndarray,
-    points_per_tau: int = 200,
+    points_per_tau: int = 100,
 ) -> np.ndarray:
     """E(t) (1/s) of ``n_sections`` open sections in series on a uniform grid t (from 0).
 
@@ -68,8 +68,8 @@ def blender_cdf_increments(
     n_sections: int,
     dt: float,
     n_steps: int,
-    points_per_tau: int = 200,
-    tail: float = 1e-12,
+    points_per_tau: int = 100,
+    tail: float = 1e-9,
 ) -> np.ndarray:
     """F(k dt) of the whole blender for k = 0..K (K <= n_steps, cut once 1 - F < ``tail``)."""
     tau = section_tau(section) * n_sections
@@ -94,7 +94,7 @@ def predict_outlet(
     inlet: np.ndarray,
     flow_scale: np.ndarray | None = None,
     initial: float | None = None,
-    points_per_tau: int = 200,
+    points_per_tau: int = 100,
     cdf: np.ndarray | None = None,
 ) -> np.ndarray:
     """Outlet concentration on the uniform grid t for a zero-order-hold inlet signal.
