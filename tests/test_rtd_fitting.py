@@ -49,6 +49,17 @@ def test_closed_closed_and_dead_volume_fits():
     assert r.params["fraction"] == pytest.approx(0.1, abs=0.03)
 
 
+def test_zusatz_and_emg_fits():
+    """Zusatz (Poulesquen et al. 2003) and EMG (Grushka 1972) parameters are recovered from
+    low-noise synthetic data (multi-start for Zusatz)."""
+    e = M.zusatz(T, 8.0, 12.0, 3.0)
+    r = fit(T, e + np.random.default_rng(0).normal(0, 1e-4, T.size), "zusatz")
+    assert r.params == pytest.approx({"tau_d": 8.0, "b": 12.0, "c": 3.0}, rel=0.02)
+    e = M.emg(T, 30.0, 3.0, 8.0)
+    r = fit(T, e + np.random.default_rng(1).normal(0, 1e-4, T.size), "emg")
+    assert r.params == pytest.approx({"mu": 30.0, "sigma": 3.0, "tau_e": 8.0}, rel=0.02)
+
+
 def test_aic_prefers_true_model():
     """AIC (Burnham & Anderson 2002) ranks the generating AD model above tanks in series and
     CSTR+PFR for most of 10 noise seeds."""

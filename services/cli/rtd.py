@@ -51,6 +51,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="ad_open | ad_closed | tis | cstr_pfr | emg | zusatz | ad_open_dead | ad_open_bypass "
         "| tis_bypass | all",
     )
+    a.add_argument(
+        "--scale",
+        choices=("free", "fixed"),
+        default="free",
+        help="fit E with a free amplitude (default; robust to a noisy area) or fixed to 1 (seed)",
+    )
     a.add_argument("--out", type=Path, required=True)
     a.set_defaults(func=_analyze)
 
@@ -178,6 +184,11 @@ def _analyze(args: argparse.Namespace) -> int:
             }
         e = e_curve(t, y)
         report["moments"] = moments(t, y).__dict__
+        if not report["moments"]["variance"] > 0 or np.min(y) < -0.01 * np.max(y):
+            report["moments_note"] = (
+                "negative values (baseline noise/offset) distort the moments and the area; "
+                "consider --truncate pat:3"
+            )
         report["height"] = float(np.max(y))
         report["fwhm_s"] = fwhm(t, y)
         lo, hi = lot_boundaries(t, np.clip(y, 0, None))
@@ -185,11 +196,15 @@ def _analyze(args: argparse.Namespace) -> int:
         fits = []
         if args.fit:
             names = list(MODELS) if args.fit == "all" else [args.fit]
-            fits = compare_models(t, e, names) if len(names) > 1 else [fit(t, e, names[0])]
+            fits = (
+                compare_models(t, e, names, scale=args.scale)
+                if len(names) > 1
+                else [fit(t, e, names[0], scale=args.scale)]
+            )
             report["fits"] = [f.as_dict() for f in fits]
             if fits:
                 best = fits[0]
-                resid_fit = best.fitted * np.trapezoid(y, t)
+                resid_fit = best.fitted * np.trapezoid(y, t)  # back to concentration units
                 report["noise"] = characterize(t, y_clean, resid_fit).as_dict()
         _write_json(out / "report.json", report)
         plt = _plt()

@@ -503,9 +503,11 @@ def _g_emg(t0: float, mean: float, std: float) -> tuple[float, ...]:
     return (mean - 0.5 * std, 0.7 * std, 0.5 * std)
 
 
-def _g_zus(t0: float, mean: float, std: float) -> tuple[float, ...]:
-    tau_d = max(0.0, min(t0, mean - 2.0 * std))
-    return (tau_d, max(0.7 * (mean - tau_d), 1e-3), 3.0)
+def _g_zus(t0: float, mean: float, std: float) -> list[tuple[float, ...]]:
+    out = []
+    for tau_d in {max(0.0, min(t0, mean - 2.0 * std)), 0.9 * t0}:
+        out += [(tau_d, max(0.7 * (mean - tau_d), 1e-3), c) for c in (1.5, 4.0)]
+    return out
 
 
 def _g_dead(t0: float, mean: float, std: float) -> list[tuple[float, ...]]:
