@@ -119,9 +119,13 @@ def fit(
     p = len(names)
     if tt.size <= p + 1:
         raise ValueError(f"need more than {p + 1} points to fit {p} parameters, got {tt.size}")
-    w = np.ones_like(yy) if sigma is None else 1.0 / np.asarray(sigma, dtype=float)
-    if w.shape != yy.shape or not np.all(np.isfinite(w)) or np.any(w <= 0):
-        raise ValueError("sigma must be positive, finite and shaped like y")
+    if sigma is None:
+        w = np.ones_like(yy)
+    else:
+        sg = np.asarray(sigma, dtype=float)
+        if sg.shape != yy.shape or not np.all(np.isfinite(sg)) or np.any(sg <= 0):
+            raise ValueError("sigma must be positive, finite and shaped like y")
+        w = 1.0 / sg
     lo = np.array(spec.lower, float)
     hi = np.array(spec.upper, float)
     if bounds is not None:
