@@ -21,7 +21,14 @@ from twin_core.compartment import (
 )
 from twin_core.compartment.flows import cell_flows_from_crossings
 from twin_core.compartment.network import chain_periodic
-from twin_core.compartment.surrogate import cell_network, walk_transit_times
+from twin_core.compartment.radial import grid_rsd_from_compartments, section_concentrations
+from twin_core.compartment.surrogate import (
+    cell_network,
+    coarse_index,
+    grid_rsd_from_particles,
+    walk_snapshots,
+    walk_transit_times,
+)
 
 
 @pytest.fixture(scope="module")
@@ -143,3 +150,30 @@ def test_whole_blender_against_face_coupled_cell_truth(small):
     assert abs(rp["mean_rel_err"]) < 2e-3
     assert rp["w1_rel"] < rc["w1_rel"]
     assert rp["w1_rel"] < 0.03 and abs(rp["var_rel_err"]) < 0.15
+
+
+def test_cell_network_grid_rsd_matches_walkers(small):
+    """Radial mixing: the cell-resolution network's grid RSD plus the binomial sampling variance
+    of a finite particle sample (seed Eq. B.1 on DEM) equals the grid RSD of walkers of the same
+    Markov chain (forward equation = network), within the sampling scatter."""
+    case, _, cells = small
+    f = case.fields
+    net = CompartmentModel(resolution="cells").fit(f)
+    assert net.n_compartments_ == int(net.mask_.sum())
+    y_mid = 0.5 * (f.y_edges[0] + f.y_edges[-1])
+    rng = np.random.default_rng(4)
+    n_part = 20000
+    start = rng.choice(cells.n, size=n_part, p=cells.holdup / cells.holdup.sum())
+    tracer = cells.centroid[start, 1] < y_mid
+    tau = net.mean_residence_time_s_
+    tm = np.linspace(0, 0.5 * tau, 9)
+    bins = (5, 3, 3)
+    coarse = coarse_index(f, net.mask_, bins)
+    r_walk = grid_rsd_from_particles(walk_snapshots(cells, start, tm, seed=5), tracer, coarse, 45)
+    c0 = (cells.centroid[:, 1] < y_mid).astype(float)
+    c = section_concentrations(net.periodic_, c0, tm)
+    ppk = n_part / float(f.holdup_kg[net.mask_].sum())
+    _, r_net = grid_rsd_from_compartments(c, net.labels_, f.holdup_kg, coarse, 45, ppk)
+    assert r_walk[0] == pytest.approx(r_net[0], abs=0.05)
+    assert np.abs(r_walk - r_net).max() < 0.06
+    assert r_net[-1] < 0.5 * r_net[0]
