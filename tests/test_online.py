@@ -69,8 +69,8 @@ def test_streaming_steady_initial_and_normalisation():
 
 def test_streaming_cstr_step_response_analytic():
     """Analytic: a CSTR, E = exp(-t/tau)/tau, answers a unit step with 1 - exp(-t/tau)."""
-    tau, dt = 20.0, 0.01
-    t = np.arange(0, 200, dt)
+    tau, dt = 20.0, 0.05
+    t = np.arange(0, 150, dt)
     e = np.exp(-t / tau) / tau
     sc = StreamingConvolver(e, dt)
     y = sc.push_many(np.ones(t.size))
