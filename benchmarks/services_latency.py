@@ -34,7 +34,7 @@ CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--seconds", type=float, default=90.0)
+    ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--port", type=int, default=17910)
     ap.add_argument("--services", default="blender,oos", help="supervised services")
     ap.add_argument(

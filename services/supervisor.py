@@ -27,8 +27,10 @@ from typing import Any
 
 import zenoh
 
+from schemas import keys
 from schemas.line import LineSpec
-from services.bus import open_session
+from schemas.messages import ServiceHealth
+from services.bus import TypedPublisher, open_session
 from services.common import STATE_ENV
 
 log = logging.getLogger(__name__)
@@ -96,6 +98,13 @@ class Supervisor:
             zenoh.handlers.Callback(self._on_alive, lambda: None),
             history=True,
         )
+        self._token = self.session.liveliness().declare_token(
+            keys.service_alive(self.spec.name, "supervisor")
+        )
+        self._health = TypedPublisher(
+            self.session, keys.service_health(self.spec.name, "supervisor"), ServiceHealth
+        )
+        self._t0 = time.monotonic()
         for child in self.children.values():
             self._spawn(child)
         self._thread = threading.Thread(target=self._watch, name="supervisor", daemon=True)
@@ -137,9 +146,33 @@ class Supervisor:
         child.started_at = time.monotonic()
         log.info("started %s (pid %d)", child.name, child.proc.pid)
 
+    def publish_health(self) -> None:
+        """Health of the supervisor: restarts and running state of every service."""
+        counters = {f"restarts_{n}": c.restarts for n, c in self.children.items()}
+        counters.update({f"running_{n}": int(c.proc is not None) for n, c in self.children.items()})
+        self._health.publish(
+            ServiceHealth(
+                t=0.0,
+                seq=self._health.seq,
+                service="supervisor",
+                state="stopping" if self._stop.is_set() else "running",
+                pid=os.getpid(),
+                uptime_s=time.monotonic() - self._t0,
+                wall_time_unix_s=time.time(),
+                counters=counters,
+            )
+        )
+
     def _watch(self) -> None:
+        last_health = 0.0
         while not self._stop.wait(0.1):
             now = time.monotonic()
+            if now - last_health >= 1.0:
+                last_health = now
+                try:
+                    self.publish_health()
+                except Exception as exc:  # noqa: BLE001 - health must not stop supervision
+                    log.debug("supervisor health not sent: %s", exc)
             for child in self.children.values():
                 p = child.proc
                 if p is not None and p.poll() is not None:
@@ -199,5 +232,6 @@ class Supervisor:
         if self.session is not None and not self.session.is_closed():
             if self._liveliness is not None:
                 self._liveliness.undeclare()
+            self._token.undeclare()
             self.session.close()
         return codes

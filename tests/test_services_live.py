@@ -177,6 +177,7 @@ def test_known_disturbances_give_exactly_the_expected_alert_windows(run_a):
 
 def test_sigkill_restarts_the_service_without_loss_or_duplicate(run_a):
     assert run_a["restarts"] >= 1
+    assert run_a["health"]["supervisor"].counters["restarts_oos"] >= 1  # seen by `twin status`
     assert run_a["alerts_before_kill"] == 1
     ids = [a.alert_id for a in run_a["alerts"]]
     assert len(ids) == len(set(ids)) == 2
