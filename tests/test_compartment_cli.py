@@ -42,7 +42,19 @@ def test_cli_build_and_simulate(tmp_path, capsys):
     tt = tmp_path / "transit.npz"
     np.savez(tt, transit_s=np.random.default_rng(0).gamma(4.0, bm.mean_residence_time_s / 16, 50))
     assert (
-        main(["compartment", "build", str(fields), "--out", str(model), "--transit-times", str(tt)])
+        main(
+            [
+                "compartment",
+                "build",
+                str(fields),
+                "--out",
+                str(model),
+                "--transit-times",
+                str(tt),
+                "--rsd-source",
+                "compartments",
+            ]
+        )
         == 0
     )
     assert json.loads(capsys.readouterr().out)["rtd_validation"]["against"] == "DEM transit times"

@@ -257,6 +257,7 @@ def write_build_figures(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
 
     from twin_core.compartment import rsd_decay
 
@@ -300,15 +301,12 @@ def write_build_figures(
             if i == 1
             else (~net.wrap)
         )
-        for s_, d_, r_ in zip(net.src[sel], net.dst[sel], net.rate[sel]):
-            ax.plot(
-                [cen[s_, i], cen[d_, i]],
-                [cen[s_, j], cen[d_, j]],
-                "-",
-                color="0.5",
-                lw=0.3 + 2.5 * r_ / rmax,
-                alpha=0.6,
+        seg = np.stack([cen[net.src[sel]][:, [i, j]], cen[net.dst[sel]][:, [i, j]]], axis=1)
+        ax.add_collection(
+            LineCollection(
+                seg, colors="0.5", linewidths=0.3 + 2.5 * net.rate[sel] / rmax, alpha=0.6
             )
+        )
         pts = net.slice_index == 0 if i == 1 else np.ones(net.n, bool)
         sc = ax.scatter(
             cen[pts, i],
