@@ -50,6 +50,11 @@ class EffectFound(StrictModel):
     heldout_rel_improvement: Finite | None = None
     lr_z: Finite | None = None
     p_value: Finite | None = Field(None, ge=0.0, le=1.0)
+    alternatives: list[str] = Field(
+        default_factory=list,
+        description="other candidates that explain the data about as well (BIC within the "
+        "ambiguity margin): not distinguishable with this excitation",
+    )
 
 
 class WindowError(StrictModel):

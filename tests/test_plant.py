@@ -203,3 +203,17 @@ def test_config_round_trip_and_validation():
         make_effect({"name": "nope"})
     with pytest.raises(ValueError, match="duration_s"):
         simulate_line(cfg, -1.0)
+
+
+def test_line_starts_full_at_steady_state_with_slow_rtd_effects():
+    """The history before t_s[0] is the first feed (added as m0 (1 - F(t))): with a slow
+    dead zone (tau_s = 400 s) the outlet starts and stays at the feed ratio without a pulse,
+    and a pulse at t = 0 is not repeated into the past."""
+    cfg = ideal_line()
+    eff = [{"name": "dead_zone", "params": {"fraction": 0.5, "tau_s": 400.0}}]
+    run = simulate_line(cfg, 600.0, seed=0, effects=eff)
+    np.testing.assert_allclose(run.outlet_true_pct_w_w["api"], 10.0, rtol=1e-6)
+    cfg_p = ideal_line(tracers=[TracerPulse(0.0, 0.01, "api", 1.0)])
+    run_p = simulate_line(cfg_p, 600.0, seed=0)
+    assert run_p.outlet_true_pct_w_w["api"][0] == pytest.approx(10.0, rel=1e-6)
+    assert run_p.outlet_true_pct_w_w["api"][-1] == pytest.approx(10.0, rel=1e-4)

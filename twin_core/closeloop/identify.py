@@ -29,7 +29,14 @@ Procedure (forward stepwise, at most ``max_effects`` effects):
    candidates the one with the lowest BIC over the whole record (training and held-out
    residuals, parameters from the training fit; ``select="bic_all"``) is accepted (or the
    lowest held-out error, ``select="heldout"``), and the search repeats with the augmented
-   model.
+   model. Claimable candidates whose whole-record BIC is within ``ambiguity_bic`` (10: "very
+   strong" evidence, Kass & Raftery 1995) of the accepted one are reported as
+   indistinguishable alternatives (e.g. a sensor drift and a feed-factor drift of the API
+   feeder when the API flow hardly changes). With two effects accepted, a replacement step
+   (sequential floating selection) tries swapping either of them for every other candidate
+   and keeps a pair that lowers the whole-record BIC and the held-out error while both of its
+   effects pass the claim test (greedy forward steps can pick an effect that mimics the sum
+   of two others first).
 5. When nothing is claimed but the residual is not explained by the declared noise (the mean
    of (r / sigma)^2 above ``unexplained_nmse`` on the training or the held-out window) the
    status is ``"unexplained"`` and the report shows the residual; otherwise
@@ -159,6 +166,8 @@ class FitResult:
     bic_all: float = float("nan")
     claimable: bool = False
     converged: bool = True
+    #: other claimable candidates of the same step within ``ambiguity_bic`` of this one
+    alternatives: list[str] = field(default_factory=list)
 
 
 def _pack(effects: Sequence[Effect]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -262,6 +271,50 @@ class IdentifyOptions:
     unexplained_nmse: float = 1.3
     max_nfev: int = 200
     select: str = "bic_all"
+    ambiguity_bic: float = 10.0
+    swap: bool = True
+
+
+def _swap_refine(accepted, base, cands, ev, y_f, sigma, train, held, opt, score, claimable):
+    """Replacement step of a two-effect forward search (sequential floating selection,
+    Pudil, Novovicova & Kittler 1994): try replacing either accepted effect by every other
+    candidate (joint refit); keep the best pair if it lowers the whole-record BIC and the
+    held-out error, and if both of its effects still pass the claim test in order."""
+    final = accepted[-1]
+    best = None
+    for i in range(len(final.effects)):
+        keep = [e for j, e in enumerate(final.effects) if j != i]
+        keep_labels = [lab for j, lab in enumerate(final.labels) if j != i]
+        names = {lab.split("[")[0] for lab in final.labels}
+        for cand in cands:
+            if cand.name in names:
+                continue
+            fr = _fit(
+                ev,
+                _start_sets(keep, cand),
+                [*keep_labels, cand.label],
+                y_f,
+                sigma,
+                train,
+                held,
+                opt.max_nfev,
+            )
+            if fr.bic_all < final.bic_all and fr.mse_heldout < final.mse_heldout:
+                if best is None or fr.bic_all < best[0].bic_all:
+                    best = (fr, keep, keep_labels)
+    if best is None:
+        return accepted, final
+    fr, keep, keep_labels = best
+    first = _fit(ev, [keep], keep_labels, y_f, sigma, train, held, opt.max_nfev)
+    score(first, base)
+    score(fr, first)
+    m = max(len(cands), 1)
+    first.claimable = claimable(first, opt.alpha / m)
+    fr.claimable = claimable(fr, opt.alpha / m)
+    if not (first.claimable and fr.claimable):
+        return accepted, final
+    fr.alternatives = [final.labels[-1]] if final.bic_all - fr.bic_all < opt.ambiguity_bic else []
+    return [first, fr], fr
 
 
 @dataclass
@@ -407,6 +460,22 @@ def identify(
     hac = int(round(opt.hac_lag_s / dt))
     cov = NoiseCovariance(declared_pred, model.config.sensor.noise)
 
+    def score(fr: FitResult, prev: FitResult) -> None:
+        """Held-out tests and BIC of ``fr`` against the model ``prev`` it extends."""
+        e0 = ((y_f - prev.pred) / sigma)[held]
+        e1 = ((y_f - fr.pred) / sigma)[held]
+        fr.dm_stat, fr.dm_p_value = dm_test(e0, e1, hac)
+        fr.lr_z, fr.p_value = heldout_lr_test(
+            np.where(held, y_f - prev.pred, 0.0), np.where(held, fr.pred - prev.pred, 0.0), cov
+        )
+        fr.rel_improvement = 1.0 - fr.mse_heldout / prev.mse_heldout
+        fr.delta_bic = fr.bic - prev.bic
+
+    def claimable(fr: FitResult, level: float) -> bool:
+        return bool(
+            fr.delta_bic < 0 and fr.rel_improvement >= opt.min_improvement and fr.p_value < level
+        )
+
     base = _fit(ev, [[]], [], y_f, sigma, train, held, opt.max_nfev)
     current = base
     accepted: list[FitResult] = []
@@ -424,31 +493,28 @@ def identify(
             fr = _fit(
                 ev, starts, [*current.labels, cand.label], y_f, sigma, train, held, opt.max_nfev
             )
-            e0 = ((y_f - current.pred) / sigma)[held]
-            e1 = ((y_f - fr.pred) / sigma)[held]
-            fr.dm_stat, fr.dm_p_value = dm_test(e0, e1, hac)
-            fr.lr_z, fr.p_value = heldout_lr_test(
-                np.where(held, y_f - current.pred, 0.0),
-                np.where(held, fr.pred - current.pred, 0.0),
-                cov,
-            )
-            fr.rel_improvement = 1.0 - fr.mse_heldout / current.mse_heldout
-            fr.delta_bic = fr.bic - current.bic
+            score(fr, current)
             results.append(fr)
         level = opt.alpha / len(results)
         for fr in results:
-            fr.claimable = (
-                fr.delta_bic < 0
-                and fr.rel_improvement >= opt.min_improvement
-                and fr.p_value < level
-            )
+            fr.claimable = claimable(fr, level)
         steps.append(results)
         ok = [fr for fr in results if fr.claimable]
         if not ok:
             break
         key = (lambda f: f.mse_heldout) if opt.select == "heldout" else (lambda f: f.bic_all)
         current = min(ok, key=key)
+        current.alternatives = [
+            f.labels[-1]
+            for f in ok
+            if f is not current and f.bic_all - current.bic_all < opt.ambiguity_bic
+        ]
         accepted.append(current)
+
+    if len(accepted) == 2 and opt.swap:
+        accepted, current = _swap_refine(
+            accepted, base, cands, ev, y_f, sigma, train, held, opt, score, claimable
+        )
 
     if accepted:
         status = "explained"

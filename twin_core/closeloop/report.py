@@ -154,6 +154,7 @@ class CloseLoopResult:
                         "heldout_rel_improvement": step.rel_improvement,
                         "lr_z": step.lr_z,
                         "p_value": step.p_value,
+                        "alternatives": list(step.alternatives),
                     }
                 )
                 effects.append(ent)
