@@ -35,6 +35,19 @@ def test_diversion_window_shifts_by_boundaries():
     assert (s, f) == (pytest.approx(100 + lo), pytest.approx(130 + hi))
 
 
+def test_quantile_with_negative_noise_is_first_crossing():
+    """With negative baseline values F is not monotone; the boundary is the first time the
+    normalized F reaches the level (definition of the quantile)."""
+    t = np.linspace(0, 10, 11)
+    e = np.array([0, 1, 1, -0.5, 1, 1, 0, 0, 0, 0, 0], dtype=float)
+    f = np.cumsum(np.r_[0, 0.5 * (e[1:] + e[:-1])])
+    f /= f[-1]
+    q = 0.3
+    i = int(np.argmax(f >= q))
+    expected = t[i - 1] + (q - f[i - 1]) / (f[i] - f[i - 1]) * (t[i] - t[i - 1])
+    assert quantile_time(t, e, q) == pytest.approx(expected)
+
+
 def test_lots_errors():
     """Bad levels, zero area and reversed windows raise ValueError naming the field."""
     t = np.linspace(0, 10, 11)

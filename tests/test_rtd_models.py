@@ -139,11 +139,14 @@ def test_dead_volume_and_bypass_variants():
     """Dead (exchanging) volume keeps area 1 and multiplies the dispersion mean by (1 + r)
     (mobile-immobile model, van Genuchten & Wierenga 1976); r = 0 gives the plain model; bypass
     mean = tau_d + f tau_b + (1 - f) tau (1 + 2/Pe) (parallel paths, Levenspiel ch. 12)."""
-    a, m, _, _ = _moments(
+    a, m, v, _ = _moments(
         T_COARSE, M.axial_dispersion_open_dead_volume(T_COARSE, 11.92, 16.37, 7.67, 0.4, 6.0)
     )
     assert a == pytest.approx(1.0, abs=1e-6)
-    assert m == pytest.approx(11.92 + 1.4 * 16.37 * (1 + 2 / 7.67), rel=1e-6)
+    mean_ad = 16.37 * (1 + 2 / 7.67)
+    assert m == pytest.approx(11.92 + 1.4 * mean_ad, rel=1e-6)
+    var_ad = 16.37**2 * (2 / 7.67 + 8 / 7.67**2)
+    assert v == pytest.approx(var_ad * 1.4**2 + 2 * 0.4 * 6.0 * mean_ad, rel=1e-5)
     t = np.linspace(0, 200, 2001)
     np.testing.assert_allclose(
         M.axial_dispersion_open_dead_volume(t, 11.92, 16.37, 7.67, 0.0, 6.0),

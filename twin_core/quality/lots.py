@@ -31,7 +31,9 @@ def quantile_time(t: ArrayLike, e: ArrayLike, q: float) -> float:
     area = f[-1]
     if not area > 0:
         raise ValueError(f"e must have a positive area, got {area!r}")
-    fn = f / area
+    # first time the normalized F reaches q: search the running maximum, which is monotone
+    # even when a measured profile has negative (baseline-noise) values
+    fn = np.maximum.accumulate(f / area)
     i = int(np.searchsorted(fn, q, side="left"))
     if i == 0:
         return float(tt[0])

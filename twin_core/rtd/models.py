@@ -348,7 +348,8 @@ def axial_dispersion_open_dead_volume(
     space the flowing-zone balance has s replaced by s' = s (1 + r_dead / (1 + s tau_x))
     (mobile-immobile model, van Genuchten & Wierenga 1976), so G(s) = G_AD,open(s'); E is
     obtained by fixed Talbot inversion. Mean = tau_d + (1 + r_dead) tau (1 + 2/Pe).
-    r_dead = 0 reduces to :func:`axial_dispersion_open`.
+    Variance = tau^2 (2/Pe + 8/Pe^2) (1 + r_dead)^2 + 2 r_dead tau_x tau (1 + 2/Pe) (cumulants
+    of G). r_dead = 0 reduces to :func:`axial_dispersion_open`.
     """
     tt = _as_t(t)
     tau_d = _check("tau_d", tau_d, strict=False)
@@ -361,7 +362,10 @@ def axial_dispersion_open_dead_volume(
         return _g_ad_open(s * (1.0 + r_dead / (1.0 + s * tau_x)), tau, pe)
 
     mean = (1.0 + r_dead) * tau * (1.0 + 2.0 / pe)
-    var = tau**2 * (2 / pe + 8 / pe**2) * (1 + r_dead) ** 2 + 2 * r_dead * tau_x**2 * tau / tau_x
+    # cumulants of G_AD(s (1 + r/(1 + s tau_x))): var = var_AD (1+r)^2 + 2 r tau_x mean_AD
+    var = tau**2 * (2 / pe + 8 / pe**2) * (1 + r_dead) ** 2 + 2 * r_dead * tau_x * tau * (
+        1 + 2 / pe
+    )
     return np.maximum(_invert(g, tt - tau_d, pe, mean, float(np.sqrt(var))), 0.0)
 
 
