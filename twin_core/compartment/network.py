@@ -159,7 +159,7 @@ def _uniform_dt(t: np.ndarray) -> float:
 
 
 def _propagate(
-    net: CompartmentNetwork, t: np.ndarray, m0: np.ndarray, block: int = 32
+    net: CompartmentNetwork, t: np.ndarray, m0: np.ndarray, block: int = 16
 ) -> tuple[np.ndarray, np.ndarray]:
     """Discharge rate d.m(t_k)/Q-normalised and tracer left 1.m(t_k) on a uniform grid.
 
