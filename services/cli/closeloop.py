@@ -124,7 +124,11 @@ def write_figures(result: Any, out_dir: str | Path) -> list[str]:
     y = result.ident.measured
     sp = result.ident.split
     pb, pa = result.predicted_before, result.predicted_after
-    found = ", ".join(result.effects_found) or result.status
+    found = (
+        "augmented: " + ", ".join(result.effects_found)
+        if result.effects_found
+        else f"no effect claimed ({result.status})"
+    )
     paths = []
 
     def shade(ax):
@@ -133,13 +137,13 @@ def write_figures(result: Any, out_dir: str | Path) -> list[str]:
             ax.axvspan(ho.min(), ho.max(), color="0.9", zorder=0, label="held out")
 
     fig, axes = plt.subplots(2, 1, figsize=(11, 6.5), sharex=True)
-    for ax, p, title in (
-        (axes[0], pb, "declared model (before)"),
-        (axes[1], pa, f"augmented: {found} (after)"),
+    for ax, p, title, color in (
+        (axes[0], pb, "declared model (before)", "C3"),
+        (axes[1], pa, f"{found} (after)", "C2"),
     ):
         shade(ax)
         ax.plot(t, y, ".", ms=2, color="0.4", label="measured")
-        ax.plot(t, p, "-", lw=1.2, color="C3" if p is pb else "C2", label="predicted")
+        ax.plot(t, p, "-", lw=1.2, color=color, label="predicted")
         ax.set_ylabel(f"{result.model.config.sensor.component} (% w/w)")
         ax.set_title(title)
         ax.legend(loc="upper right", fontsize=8)
@@ -183,7 +187,7 @@ def write_figures(result: Any, out_dir: str | Path) -> list[str]:
         ax.barh([f.labels[-1] for f in rows], vals, color=cols)
         ax.axvline(result.ident.options.min_improvement, color="k", ls="--", lw=0.8, label="margin")
         ax.invert_yaxis()
-        ax.set_xlabel("held-out relative MSE improvement (step 1)")
+        ax.set_xlabel("held-out relative MSE improvement, step 1 (green: passes the claim test)")
         ax.legend(fontsize=8)
         fig.tight_layout()
         p3 = out / "closeloop_candidates.png"
