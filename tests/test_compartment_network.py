@@ -33,7 +33,7 @@ def test_one_compartment_is_a_cstr():
 
 def test_equal_compartments_in_series_are_tanks_in_series():
     """Reference: N equal CSTRs in series give the gamma (Erlang) density with shape N and
-    scale tau/N (tanks-in-series model, Levenspiel ch. 14)."""
+    scale tau/N (tanks-in-series model, Levenspiel ch. 14; also the peer rtd.models code)."""
     n, q, v = 5, 0.2, 1.0
     net = CompartmentNetwork(
         holdup=np.full(n, v),
@@ -46,6 +46,12 @@ def test_equal_compartments_in_series_are_tanks_in_series():
     t = np.linspace(0, 100, 2001)
     ref = stats.gamma(a=n, scale=n * v / q / n).pdf(t)
     np.testing.assert_allclose(net.impulse_response(t), ref, atol=1e-12, rtol=1e-9)
+    # peer implementation of the same law (twin_core.rtd, the RTD models of the line)
+    from twin_core.rtd.models import tanks_in_series
+
+    np.testing.assert_allclose(
+        net.impulse_response(t), tanks_in_series(t, 0.0, n * v / q, n), atol=1e-12, rtol=1e-9
+    )
     # the same law from the mixing-cup chain of 1-compartment sections
     cstr = CompartmentNetwork(holdup=[v], src=[], dst=[], rate=[], feed=[q], discharge=[q])
     np.testing.assert_allclose(chain_sections(cstr, n).impulse_response(t), ref, atol=1e-12)
