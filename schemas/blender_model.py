@@ -22,7 +22,7 @@ SCHEMA_VERSION = "1"
 class BlenderModel(BaseModel):
     """Compartment model of a blender: ``n_sections`` identical open sections in series."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
     schema_version: Literal["1"] = SCHEMA_VERSION
     n_compartments: int = Field(gt=0, description="compartments of one section")
