@@ -28,7 +28,7 @@ from schemas import keys
 from schemas.line import LineSpec
 from schemas.messages import Event, FeederFlow, PredictedConcentration, RtdEstimate
 from services.common import LiveService
-from twin_core.online import InletAligner, StreamingConvolver
+from twin_core.online import InletAligner, StreamingConvolver, TracerInjector
 
 log = logging.getLogger(__name__)
 
@@ -72,51 +72,20 @@ class BlenderPredictor:
         self.e = blender_kernel(spec) if e is None else np.asarray(e, float)
         self.aligner = InletAligner(list(self.components), spec.dt_s)
         self.conv: dict[str, StreamingConvolver] | None = None
-        self._pulses: list[tuple[str, float, float, float]] = []  # component, t0, t1, kg/h
-        self._carry: dict[str, float] = {}  # tracer mass (as kg/h over one tick) not yet added
-        self._last_tick: float | None = None
-
-    def add_pulse(self, component: str, t_s: float, mass_kg: float, duration_s: float) -> None:
-        """A tracer pulse entering the inlet: ``mass_kg`` of ``component`` over
-        [t_s, t_s + duration_s), spread over the tick bins [t - dt/2, t + dt/2) it overlaps
-        (as ``twin_core.plant.model``); mass in bins already predicted goes to the next tick."""
-        if component not in self.comp_names or not duration_s > 0 or not mass_kg >= 0:
-            raise ValueError(
-                f"tracer pulse needs a known component and duration_s > 0, got {component!r}, "
-                f"{duration_s!r}"
-            )
-        rate_kg_h = mass_kg / duration_s * 3600.0
-        t1 = t_s + duration_s
-        if self._last_tick is not None:
-            edge = self._last_tick + 0.5 * self.spec.dt_s
-            missed = max(0.0, min(edge, t1) - t_s)
-            if missed > 0:
-                self._carry[component] = (
-                    self._carry.get(component, 0.0) + rate_kg_h * missed / self.spec.dt_s
-                )
-                t_s = min(edge, t1)
-        if t1 > t_s:
-            self._pulses.append((component, t_s, t1, rate_kg_h))
-
-    def _tracer(self, t: float, mass: dict[str, float]) -> None:
-        dt = self.spec.dt_s
-        lo, hi = t - 0.5 * dt, t + 0.5 * dt
-        keep = []
-        for comp, a, b, rate in self._pulses:
-            overlap = max(0.0, min(hi, b) - max(lo, a))
-            mass[comp] += rate * overlap / dt
-            if b > hi:
-                keep.append((comp, a, b, rate))
-        self._pulses = keep
-        for comp, q in self._carry.items():
-            mass[comp] += q
-        self._carry.clear()
+        self.tracer = TracerInjector(spec.dt_s)
 
     def set_kernel(self, e: np.ndarray) -> None:
+        """Replace E(t) (an adopted RTD estimate), keeping the flow history."""
         self.e = np.asarray(e, float)
         if self.conv is not None:
             for c in self.conv.values():
                 c.set_kernel(self.e)
+
+    def add_pulse(self, component: str, t_s: float, mass_kg: float, duration_s: float) -> None:
+        """A tracer pulse entering the inlet (``twin_core.online.TracerInjector``)."""
+        if component not in self.comp_names:
+            raise ValueError(f"component must be one of {self.comp_names}, got {component!r}")
+        self.tracer.add_pulse(component, t_s, mass_kg, duration_s)
 
     def push(self, feeder: str, t: float, flow_kg_h: float) -> list[tuple[float, dict[str, float]]]:
         """One feeder sample -> the (t, {component: % w/w}) of every tick it completed."""
@@ -126,8 +95,7 @@ class BlenderPredictor:
             for f, q in flows.items():
                 mass[self.components[f]] += q
             steady = dict(mass)
-            self._tracer(tt, mass)
-            self._last_tick = tt
+            self.tracer.apply(tt, mass)
             if self.conv is None:
                 self.conv = {
                     c: StreamingConvolver(self.e, self.spec.dt_s, initial=steady[c])

@@ -2,7 +2,12 @@
 
 Thin shell over :class:`twin_core.online.OosDecider` (one per specified component):
 
-- inputs: feeder flows ``twin/<line>/feeder/*/flow`` (inlet composition, funnel early flag),
+- inputs: feeder flows ``twin/<line>/feeder/*/flow`` and announced tracer pulses
+  (``tracer_pulse`` events with their mass) give the inlet signal of the funnel early flag,
+  the linearised composition ``x = c0 + 100 (m_i - c0/100 m_tot) / m_nom`` (c0 the target,
+  m_nom the sum of the set points): the first-order perturbation of the mass-flow-weighted
+  outlet ``100 (E * m_i) / (E * m_tot)`` is exactly the convolution of ``x - c0`` with E(t),
+  so the funnel applies to flow pulses (tracer) as well as to composition changes;
   measured concentration ``twin/<line>/pat/<sensor>/concentration`` and, when the blender runs,
   predictions ``twin/<line>/blender/outlet/predicted``; the three streams are merged in plant
   time (:class:`twin_core.online.WatermarkMerger`) so decisions do not depend on arrival order;
@@ -42,13 +47,15 @@ from twin_core.online import (
     DiverterOutput,
     InletAligner,
     OosDecider,
+    TracerInjector,
     WatermarkMerger,
-    composition_pct,
 )
 
 log = logging.getLogger(__name__)
 
 END_OF_STREAM = "end-of-stream"
+#: the inlet stream enters the event-time merge this many ticks ahead of its plant time
+INLET_LEAD_TICKS = 2
 
 
 def replay_event_key(line: str) -> str:
@@ -104,6 +111,11 @@ class OosCore:
         streams = ["inlet", "measured"] + (["predicted"] if self.use_predicted else [])
         self.merger = WatermarkMerger(streams)
         self.aligner = InletAligner([f.id for f in spec.feeders], dt)
+        self.tracer = TracerInjector(dt)
+        self.m_nom = sum(f.setpoint_kg_h for f in spec.feeders)
+        self._held: tuple[float, dict[str, float]] | None = None
+        self.inlet_lead_s = INLET_LEAD_TICKS * dt
+        self._pulse_ts: set[float] = set()
         self._last: dict[tuple[str, str], float] = {}
         self.duplicates = 0
 
@@ -119,9 +131,9 @@ class OosCore:
         out: list[DiverterOutput] = []
         for stream, t, item in released:
             if stream == "inlet":
-                for comp, x in item.items():
-                    if comp in self.deciders:
-                        out += self.deciders[comp].inlet(t, x)
+                t_in, xs = item
+                for comp, x in xs.items():
+                    out += self.deciders[comp].inlet(t_in, x)
             else:
                 comp, c = item
                 d = self.deciders.get(comp)
@@ -134,9 +146,36 @@ class OosCore:
             return []
         out: list[DiverterOutput] = []
         for tt, flows in self.aligner.push(feeder, t, flow_kg_h):
-            x = composition_pct(flows, self.spec.components)
-            out += self._process(self.merger.push("inlet", tt, x))
+            out += self._push_inlet()
+            self._held = (tt, flows)
         return out
+
+    def _push_inlet(self) -> list[DiverterOutput]:
+        """Release the held inlet tick (held one tick so that a tracer event arriving after the
+        flows of its tick still counts), merged at t + INLET_LEAD_S: an outlet decision at t
+        depends on the inlet only up to t - t(F=0.5 %), so this costs no latency."""
+        if self._held is None:
+            return []
+        tt, flows = self._held
+        self._held = None
+        mass: dict[str, float] = {}
+        for f, q in flows.items():
+            c = self.spec.components[f]
+            mass[c] = mass.get(c, 0.0) + q
+        self.tracer.apply(tt, mass)
+        total = sum(mass.values())
+        x = {
+            c: d.target + 100.0 * (mass.get(c, 0.0) - d.target / 100.0 * total) / self.m_nom
+            for c, d in self.deciders.items()
+        }
+        return self._process(self.merger.push("inlet", tt + self.inlet_lead_s, (tt, x)))
+
+    def tracer_pulse(self, component: str, t: float, mass_kg: float, duration_s: float) -> None:
+        """An announced tracer pulse: its mass enters the inlet composition (funnel, tracing)."""
+        if t in self._pulse_ts:
+            return  # the same event again (history after a restart)
+        self._pulse_ts.add(t)
+        self.tracer.add_pulse(component, t, mass_kg, duration_s)
 
     def measured(self, component: str, t: float, c: float) -> list[DiverterOutput]:
         if not self._fresh("measured", component, t):
@@ -149,7 +188,8 @@ class OosCore:
         return self._process(self.merger.push("predicted", t, (component, c)))
 
     def end_of_stream(self) -> list[DiverterOutput]:
-        out = self._process(self.merger.release_all())
+        out = self._push_inlet()
+        out += self._process(self.merger.release_all())
         for d in self.deciders.values():
             out += d.flush()
         return out
@@ -204,7 +244,7 @@ class OosService(LiveService):
             self.history_subscribe(
                 keys.predicted_concentration(line, "outlet"), PredictedConcentration
             )
-        self.history_subscribe(replay_event_key(line), Event)
+        self.history_subscribe(f"twin/{line}/*/*/event", Event)
 
     def handle(self, key: str, msg: Any) -> None:
         self._idle = 0.0
@@ -219,6 +259,12 @@ class OosService(LiveService):
             outs = self.core.predicted(msg.component, msg.t, msg.concentration_pct_w_w)
         elif isinstance(msg, Event) and msg.kind == "note" and msg.detail == END_OF_STREAM:
             outs = self.core.end_of_stream()
+        elif isinstance(msg, Event) and msg.kind == "tracer_pulse" and msg.mass_kg:
+            comp = msg.component or msg.source
+            if comp in self.spec.components.values():
+                self.core.tracer_pulse(comp, msg.t, msg.mass_kg, msg.duration_s or 1.0)
+                self.counters.inc("tracer_pulses")
+            return
         else:
             return
         self.emit(outs)

@@ -26,6 +26,27 @@ def test_ad_fit_ci_coverage_40_seeds():
     assert all(h / 40 >= 0.85 for h in hits.values()), hits
 
 
+def test_weighted_fit_restores_coverage_with_proportional_noise():
+    """With 8 % signal-proportional noise the unweighted CIs under-cover; two-stage weighted
+    least squares (sigma="auto", Carroll & Ruppert 1988) covers the truth in >= 85 % of 40 seeds
+    per parameter and does better than the unweighted fit."""
+    from twin_core.rtd.noise import synthesize
+
+    t = np.arange(0.0, 250.0, 1.0)
+    s = 210.0 * M.axial_dispersion_open(t, **TRUE_AD)  # peak ~10 % w/w, as a 10 g run
+    hits_w = {k: 0 for k in TRUE_AD}
+    hits_u = {k: 0 for k in TRUE_AD}
+    for seed in range(40):
+        y = s + synthesize(s, 0.1, 0.0, 0.08, seed)
+        rw = fit(t, y, "ad_open", scale="free", sigma="auto")
+        ru = fit(t, y, "ad_open", scale="free")
+        for k, v in TRUE_AD.items():
+            hits_w[k] += rw.ci[k][0] <= v <= rw.ci[k][1]
+            hits_u[k] += ru.ci[k][0] <= v <= ru.ci[k][1]
+    assert all(h / 40 >= 0.85 for h in hits_w.values()), hits_w
+    assert sum(hits_w.values()) > sum(hits_u.values())
+
+
 def test_tis_fit_non_integer_n():
     """Tanks in series with non-integer n = 3.4 is recovered within its 95 % CI
     (gamma-distribution model, Levenspiel 1999 ch. 14)."""
@@ -78,6 +99,8 @@ def test_fit_report_and_errors():
     e = M.axial_dispersion_open(T, **TRUE_AD)
     r = fit(T, e, "ad_open")
     assert "tau_d" in r.report() and r.as_dict()["n"] == T.size
+    with pytest.raises(ValueError, match="sigma must be an array, None or 'auto'"):
+        fit(T, e, sigma="magic")
     with pytest.raises(ValueError, match="scale must be"):
         fit(T, e, scale="weird")
     with pytest.raises(ValueError, match="model must be one of"):

@@ -57,6 +57,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="free",
         help="fit E with a free amplitude (default; robust to a noisy area) or fixed to 1 (seed)",
     )
+    a.add_argument(
+        "--weighted",
+        action="store_true",
+        help="two-stage weighted fit with the variance model a + b y^2 (proportional noise)",
+    )
     a.add_argument("--out", type=Path, required=True)
     a.set_defaults(func=_analyze)
 
@@ -87,6 +92,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     r.add_argument("--out", type=Path, required=True)
     r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--repeats", type=int, default=3, help="repeats per tracer amount (seed: 3)")
     r.set_defaults(func=_reproduce)
 
 
@@ -196,10 +202,11 @@ def _analyze(args: argparse.Namespace) -> int:
         fits = []
         if args.fit:
             names = list(MODELS) if args.fit == "all" else [args.fit]
+            sig = "auto" if args.weighted else None
             fits = (
-                compare_models(t, e, names, scale=args.scale)
+                compare_models(t, e, names, scale=args.scale, sigma=sig)
                 if len(names) > 1
-                else [fit(t, e, names[0], scale=args.scale)]
+                else [fit(t, e, names[0], scale=args.scale, sigma=sig)]
             )
             report["fits"] = [f.as_dict() for f in fits]
             if fits:
@@ -344,8 +351,13 @@ def _reproduce(args: argparse.Namespace) -> int:
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    runs = generate_campaign(args.seed)
-    ten = [r for r in runs if r.amount_g == 10.0]
+    from twin_core.rtd.synthetic import CampaignConfig
+
+    if args.repeats < 2:
+        print(f"error: repeats must be >= 2, got {args.repeats}", file=sys.stderr)
+        return 2
+    runs = generate_campaign(args.seed, CampaignConfig(repeats=args.repeats))
+    ten = [r for r in runs if r.amount_g == 10.0]  # the seed's truncation runs
     plt = _plt()
     steps = tqdm(total=6, desc="reproduce", disable=not sys.stderr.isatty())
 

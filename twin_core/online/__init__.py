@@ -13,7 +13,7 @@ from twin_core.online.alerts import Episode, EpisodeEvent, HysteresisTracker, ep
 from twin_core.online.convolution import StreamingConvolver
 from twin_core.online.diverter import DiverterOutput, OosDecider
 from twin_core.online.funnel import FlagEvent, FunnelFlagger, window_gain
-from twin_core.online.inlet import InletAligner, composition_pct
+from twin_core.online.inlet import InletAligner, TracerInjector, composition_pct
 from twin_core.online.merge import WatermarkMerger
 from twin_core.online.tracer import TracerPulseDetector, TracerSegment
 
@@ -28,6 +28,7 @@ __all__ = [
     "OosDecider",
     "StreamingConvolver",
     "TracerPulseDetector",
+    "TracerInjector",
     "TracerSegment",
     "WatermarkMerger",
     "composition_pct",

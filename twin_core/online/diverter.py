@@ -10,7 +10,7 @@ Three views of the outlet concentration are combined, all in plant time:
    alert and the final ``divert`` window when the inlet episode ends.
 2. **Predicted outlet** (blender model) and 3. **measured outlet** (NIR): each through a
    :class:`~twin_core.online.alerts.HysteresisTracker`. An episode that starts inside a traced
-   window is the same event (it confirms it, counted, no new alert). Otherwise it is an alert of
+   window (to within one tick) is the same event (it confirms it, counted, no new alert). Otherwise it is an alert of
    its own: ``divert`` from its start when it opens, alert and final window when it closes.
 
 Outputs carry stable ids derived from the data (``<line>.<component>.<source>-<start ms>``, with
@@ -149,7 +149,8 @@ class OosDecider:
     def _from_flag(self, ev: FlagEvent) -> list[DiverterOutput]:
         dev = ev.predicted_peak_deviation
         cause = (
-            f"feeder disturbance of {self.component} at the inlet from {ev.t_in_start:.1f} s "
+            f"inlet disturbance of {self.component} (feeder flows or tracer) from "
+            f"{ev.t_in_start:.1f} s "
             f"(peak {ev.peak_value:.3f} % w/w over {ev.n_samples} samples) is outside the "
             f"funnel's feasible region: predicted outlet deviation {dev:+.3f} % w/w"
         )
@@ -177,7 +178,8 @@ class OosDecider:
         ]
 
     def _covered(self, t: float) -> bool:
-        return any(a <= t <= b for a, b in self._windows)
+        # one tick of slack: windows and episodes are both resolved to the sampling grid
+        return any(a - self.dt <= t <= b + self.dt for a, b in self._windows)
 
     def _outlet(self, src: str, t: float, c: float) -> list[DiverterOutput]:
         out: list[DiverterOutput] = []
