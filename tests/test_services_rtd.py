@@ -190,3 +190,45 @@ def test_blender_adopts_an_rtd_estimate():
     late = run.t_s >= 400 + spec.blender.kernel_s
     np.testing.assert_allclose(pred[late], ref[late], atol=1e-6)
     assert np.max(np.abs(pred[run.t_s < 400] - ref[run.t_s < 400])) > 1e-3  # old model before
+
+
+def test_diverter_traces_an_announced_tracer_pulse_early():
+    """A 10 g API tracer pulse (seed ch. 6) is an OOS event: the diverter traces it from its
+    event (arriving after the flows of its tick) to the outlet window of RTD traceability
+    (seed lot boundaries with Table 6.2's E(t)), with the early divert command issued before the
+    window opens; the predicted and measured excursions confirm it (no second alert)."""
+    from schemas import keys
+    from schemas.messages import Event, FeederFlow, MeasuredConcentration
+    from services.blender import blender_kernel
+    from services.oos import OosCore
+    from services.plant import run_messages
+    from twin_core.plant import TracerPulse, simulate_line
+    from twin_core.quality.lots import diversion_window
+
+    spec = spec_with(services=["blender", "oos"])
+    cfg = spec.plant_config()
+    cfg.tracers.append(TracerPulse(t_s=300.0, mass_kg=0.010, component="api"))
+    run = simulate_line(cfg, 600.0, dt_s=1.0, seed=9)
+    bp, core = BlenderPredictor(spec), OosCore(spec)
+    outs = []
+    for k, m in run_messages(run, spec):
+        if isinstance(m, FeederFlow):
+            f = keys.parse_key(k).id
+            outs += core.flow(f, m.t, m.mass_flow_kg_h)
+            for t, conc in bp.push(f, m.t, m.mass_flow_kg_h):
+                outs += core.predicted("api", t, conc["api"])
+        elif isinstance(m, MeasuredConcentration):
+            outs += core.measured("api", m.t, m.concentration_pct_w_w)
+        elif isinstance(m, Event) and m.kind == "tracer_pulse":
+            core.tracer_pulse("api", m.t, m.mass_kg, m.duration_s)
+            bp.add_pulse("api", m.t, m.mass_kg, m.duration_s)
+    outs += core.end_of_stream()
+    alerts = [o for o in outs if o.kind == "alert"]
+    assert [a.id for a in alerts] == ["line1.api.feed-000000300000"]
+    e = blender_kernel(spec)
+    lo, hi = diversion_window(300.0, 301.0, np.arange(e.size) * 1.0, e)  # bins 300 and 301
+    assert alerts[0].t_start == pytest.approx(lo) and alerts[0].t_end == pytest.approx(hi)
+    opened = [o for o in outs if o.id.endswith(".open")]
+    assert len(opened) == 1 and opened[0].t < lo
+    d = core.deciders["api"]
+    assert d.confirmed_["predicted"] == 1 and d.confirmed_["measured"] == 1
