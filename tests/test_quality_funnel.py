@@ -51,6 +51,19 @@ def test_feasible_area_and_comparison():
         funnel(t, np.zeros_like(t))
 
 
+def test_oos_increase_curve_monotone_for_noise_free_profile():
+    """Fig. 6.17 workflow on a noise-free AD profile: truncating more of the tail narrows E and
+    shrinks the feasible region, so the OOS increase is positive and grows with the level
+    (seed 6.2.4, first approach)."""
+    from twin_core.quality.funnel import oos_increase_curve
+
+    t = np.arange(0.0, 250.0, 1.0)
+    c = 210.0 * axial_dispersion_open(t, 11.92, 16.37, 7.67)
+    inc = oos_increase_curve(t, c, (0.0, 0.025, 0.05, 0.1))
+    assert inc[0] == pytest.approx(0.0, abs=1e-12)
+    assert np.all(np.diff(inc) > 0)
+
+
 def test_anova_and_tukey_letters():
     """One-way ANOVA equals scipy.stats.f_oneway; letters: clearly separated groups get
     different letters, overlapping ones share (compact letter display, Piepho 2004)."""

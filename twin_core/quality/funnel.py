@@ -15,6 +15,7 @@ truncated profile is 100 (OOS_truncated - OOS_original) percentage points.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,6 +30,7 @@ __all__ = [
     "funnel_brute_force",
     "compare_funnels",
     "oos_fraction",
+    "oos_increase_curve",
 ]
 
 
@@ -170,3 +172,32 @@ def compare_funnels(a: FunnelResult, b: FunnelResult) -> dict[str, float]:
 def oos_fraction(f: FunnelResult) -> float:
     """Fraction of the (uniformly distributed) disturbances in the grid giving OOS product."""
     return 1.0 - f.feasible_fraction
+
+
+def oos_increase_curve(
+    t: ArrayLike,
+    c: ArrayLike,
+    levels: ArrayLike = (0.0125, 0.025, 0.0375, 0.05, 0.075, 0.1),
+    smooth: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
+    durations: ArrayLike | None = None,
+    intensities: ArrayLike | None = None,
+    limit: float = 5.0,
+) -> NDArray[np.float64]:
+    """Fig. 6.17 workflow for one profile: for each level (fraction of the peak height),
+    zero the values below it (same length), apply `smooth` (the seed uses the wavelet
+    denoiser), normalize to E, build the funnel, and return the % increase of OOS tablets
+    (percentage points) against the untruncated, smoothed profile."""
+    from twin_core.rtd.profiles import e_curve
+    from twin_core.rtd.truncation import truncate_relative
+
+    tt = np.asarray(t, dtype=float)
+    cc = np.asarray(c, dtype=float)
+    sm = smooth or (lambda y: y)
+    ref = funnel(tt, e_curve(tt, sm(cc)), durations, intensities, limit)
+    out = []
+    for lv in np.atleast_1d(np.asarray(levels, dtype=float)):
+        f = funnel(
+            tt, e_curve(tt, sm(truncate_relative(cc, float(lv)))), durations, intensities, limit
+        )
+        out.append(compare_funnels(ref, f)["oos_increase_pct"])
+    return np.array(out)

@@ -21,7 +21,7 @@ from collections.abc import Iterable
 import numpy as np
 import pandas as pd
 
-from twin_core.quality.funnel import FunnelResult, compare_funnels, funnel
+from twin_core.quality.funnel import FunnelResult, compare_funnels, funnel, oos_increase_curve
 from twin_core.quality.lots import lot_boundaries
 from twin_core.rtd import denoise as D
 from twin_core.rtd.fitting import fit
@@ -247,25 +247,21 @@ def oos_curve(
     on the measured profile, the same after baseline-offset correction, and the noise-free
     truth."""
     rows = []
+    wt = lambda v: D.denoise(v, "wavelet").y  # noqa: E731 - the seed smooths with WT
+    kw = {"durations": DURATIONS, "intensities": INTENSITIES}
     for run in runs:
         y = clean(run)
-        yb = baseline_correct(run.t, y)
-        ref = _funnel(run.t, D.denoise(y, "wavelet").y)
-        ref_b = _funnel(run.t, D.denoise(yb, "wavelet").y)
-        ref_true = _funnel(run.t, run.c_true)
-        for lv in levels:
-            f = _funnel(run.t, D.denoise(truncate_relative(y, lv), "wavelet").y)
-            fb = _funnel(run.t, D.denoise(truncate_relative(yb, lv), "wavelet").y)
-            g = _funnel(run.t, truncate_relative(run.c_true, lv))
+        a = oos_increase_curve(run.t, y, levels, wt, **kw)
+        b = oos_increase_curve(run.t, baseline_correct(run.t, y), levels, wt, **kw)
+        c = oos_increase_curve(run.t, run.c_true, levels, None, **kw)
+        for i, lv in enumerate(levels):
             rows.append(
                 {
                     "run": run.name,
                     "level": lv,
-                    "oos_increase_pct": compare_funnels(ref, f)["oos_increase_pct"],
-                    "oos_increase_pct_baseline_corrected": compare_funnels(ref_b, fb)[
-                        "oos_increase_pct"
-                    ],
-                    "oos_increase_pct_truth": compare_funnels(ref_true, g)["oos_increase_pct"],
+                    "oos_increase_pct": a[i],
+                    "oos_increase_pct_baseline_corrected": b[i],
+                    "oos_increase_pct_truth": c[i],
                 }
             )
     long = pd.DataFrame(rows)
