@@ -34,6 +34,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import zenoh
@@ -266,9 +267,11 @@ class TypedSubscriber:
         allow_unknown: bool = False,
         name: str = "subscriber",
         with_payload: bool = False,
+        key_counts: Counters | None = None,
     ) -> None:
         self.key_expr = key_expr
         self.with_payload = with_payload
+        self.key_counts = key_counts if key_counts is not None else Counters()
         self.counters = counters or Counters()
         self.validator = MessageValidator(
             self.counters,
@@ -287,6 +290,7 @@ class TypedSubscriber:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
+        self.key_counts.inc(key)
         payload = sample.payload.to_bytes()
         msg = self.validator.check(key, payload)
         if msg is None:
@@ -312,6 +316,89 @@ def live_services(session: zenoh.Session, line: str = "*", timeout_s: float = 1.
         if reply.ok is not None:
             names.append(keys_mod.parse_key(str(reply.ok.key_expr)).id)
     return sorted(set(names))
+
+
+@dataclass
+class PingReply:
+    """A service's answer to a ping: its health and how many samples it got per key."""
+
+    health: ServiceHealth
+    key_counts: dict[str, int]
+
+
+def ping(session: zenoh.Session, line: str = "*", timeout_s: float = 2.0) -> dict[str, PingReply]:
+    """Ask every :class:`Service` (``twin/<line>/service/*/ping``) for its health and per-key
+    sample counts; returns replies by service name."""
+    replies = session.get(
+        f"twin/{line}/service/*/ping",
+        target=zenoh.QueryTarget.ALL,
+        consolidation=zenoh.ConsolidationMode.NONE,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        priority=zenoh.Priority.DATA,
+        timeout=timeout_s,
+    )
+    out: dict[str, PingReply] = {}
+    for reply in replies:
+        if reply.ok is None:
+            continue
+        try:
+            data = json.loads(reply.ok.payload.to_bytes())
+            health = ServiceHealth.model_validate(data["health"])
+            counts = {str(k): int(v) for k, v in data["key_counts"].items()}
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("bad ping reply from %s: %s", reply.ok.key_expr, exc)
+            continue
+        out[health.service] = PingReply(health, counts)
+    return out
+
+
+def barrier(
+    session: zenoh.Session,
+    line: str = "*",
+    timeout_s: float = 10.0,
+    *,
+    sent: dict[str, int] | None = None,
+    baseline: dict[str, PingReply] | None = None,
+    quiet_s: float = 0.1,
+) -> list[ServiceHealth]:
+    """Wait until every :class:`Service` on the bus has processed what this session sent.
+
+    A closing zenoh session drops what is still queued, so a burst must be drained first.
+    The services are pinged repeatedly (``quiet_s`` apart); the barrier returns when two
+    successive replies show the same per-key sample counts (quiescence) and, if ``sent``
+    (key -> messages sent since ``baseline``, a :func:`ping` taken before sending) is given,
+    every service that got any message of a sent key since the baseline got all of them, and
+    every service that answered the baseline answers again (or has stopped: its liveliness
+    token is gone).
+    Returns the services' health; on timeout, logs a warning and returns the last replies.
+    """
+    deadline = time.monotonic() + timeout_s
+    prev: dict[str, dict[str, int]] | None = None
+    base = baseline or {}
+    replies: dict[str, PingReply] = {}
+    while True:
+        remaining = deadline - time.monotonic()
+        replies = ping(session, line, max(0.5, min(5.0, remaining)))
+        snapshot = {name: r.key_counts for name, r in replies.items()}
+        complete = True
+        for name, r in replies.items():
+            got_before = base[name].key_counts if name in base else {}
+            for key, n in (sent or {}).items():
+                got = r.key_counts.get(key, 0) - got_before.get(key, 0)
+                if 0 < got < n:
+                    complete = False
+        missing = set(base) - set(replies)
+        if complete and missing:
+            # a service of the baseline that did not answer must have stopped (token gone)
+            alive = set(live_services(session, line, timeout_s=min(2.0, max(0.2, remaining))))
+            complete = not (missing & alive)
+        if complete and snapshot == prev:
+            return [r.health for r in replies.values()]
+        if time.monotonic() >= deadline:
+            log.warning("barrier: timed out after %.1f s; last counts %s", timeout_s, snapshot)
+            return [r.health for r in replies.values()]
+        prev = snapshot
+        time.sleep(quiet_s)
 
 
 class StopFlag:
@@ -370,12 +457,15 @@ class Service:
         self.line = self.config.line
         self.health_period_s = health_period_s
         self.counters = Counters()
+        #: samples received per key (valid or not), reported to pings (see :func:`barrier`)
+        self.key_counts = Counters()
         self.stop_flag = StopFlag(install=install_signal_handlers)
         self.session: zenoh.Session | None = None
         self.plant_time_s = 0.0
         self.state = "starting"
         self._t0 = time.monotonic()
         self._token: zenoh.LivelinessToken | None = None
+        self._ping: zenoh.Queryable | None = None
         self._health_pub: TypedPublisher | None = None
         self._health_thread: threading.Thread | None = None
         self._entities: list[Any] = []
@@ -387,6 +477,9 @@ class Service:
         try:
             self._token = self.session.liveliness().declare_token(
                 keys_mod.service_alive(self.line, self.name)
+            )
+            self._ping = self.session.declare_queryable(
+                keys_mod.key(self.line, "service", "ping", self.name), self._on_ping
             )
             self._health_pub = TypedPublisher(
                 self.session,
@@ -439,6 +532,8 @@ class Service:
                         entity.undeclare()
                     except Exception as exc:  # noqa: BLE001
                         log.debug("undeclare failed: %s", exc)
+                if self._ping is not None:
+                    self._ping.undeclare()
                 if self._token is not None:
                     self._token.undeclare()
         finally:
@@ -504,6 +599,7 @@ class Service:
             allow_unknown=allow_unknown,
             name=self.name,
             with_payload=with_payload,
+            key_counts=self.key_counts,
         )
         self._entities.append(sub)
         return sub
@@ -523,6 +619,25 @@ class Service:
             counters=self.counters.snapshot(),
             last_error=self.counters.last_error,
         )
+
+    def drain(self, timeout_s: float = 10.0, **kwargs: Any) -> list[ServiceHealth]:
+        """Wait until every service on the bus processed what this one sent (see
+        :func:`barrier`); call before closing after a burst of publications."""
+        return barrier(self._require_session(), timeout_s=timeout_s, **kwargs)
+
+    def _on_ping(self, query: zenoh.Query) -> None:
+        try:
+            payload = {
+                "health": self.health().model_dump(mode="json"),
+                "key_counts": self.key_counts.snapshot(),
+            }
+            query.reply(
+                keys_mod.key(self.line, "service", "ping", self.name),
+                json.dumps(payload).encode(),
+                encoding=JSON,
+            )
+        except Exception as exc:  # noqa: BLE001 - a ping must not kill the receive path
+            log.warning("ping reply failed: %s", exc)
 
     def publish_health(self) -> ServiceHealth:
         assert self._health_pub is not None

@@ -186,7 +186,7 @@ class McapRecorder:
 # reader
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class RecordedMessage:
     """One message of a recording: key, times (ns), per-channel sequence, raw payload bytes."""
 
@@ -404,6 +404,7 @@ class ReplayStats:
     plant_span_s: float = 0.0
     max_lag_s: float = 0.0
     stopped: bool = False
+    acknowledged_by: list[str] = field(default_factory=list)
 
     @property
     def rate_msg_s(self) -> float:
@@ -717,6 +718,8 @@ def replay_to_bus(
     max_passes: int | None = None,
     wait_for_subscribers_s: float = 0.0,
     settle_s: float = 0.0,
+    drain_timeout_s: float = 10.0,
+    linger_s: float = 0.0,
     service_name: str = "replay",
     install_signal_handlers: bool = True,
 ) -> ReplayStats:
@@ -725,8 +728,14 @@ def replay_to_bus(
     ``wait_for_subscribers_s``: wait up to this long until every channel's publisher has a
     matching subscriber before starting; ``settle_s``: extra wait before starting (lets the
     subscriber side finish declaring). Stops early on SIGINT/SIGTERM.
+
+    Before closing, the replay waits (up to ``drain_timeout_s``, :func:`services.bus.barrier`)
+    until every :class:`services.bus.Service` on the bus that received any message of a
+    replayed key received all of them and its counts stopped changing: zenoh drops a closing
+    session's queued messages. Subscribers that are not a ``Service``
+    are not covered; ``linger_s`` keeps the session open that much longer for them.
     """
-    from services.bus import Service
+    from services.bus import Service, barrier, ping
 
     valid, rejected = validate_messages(rec)
     if any(rejected.values()):
@@ -741,9 +750,12 @@ def replay_to_bus(
             time.sleep(0.02)
         if settle_s > 0:
             svc.stop_flag.wait(settle_s)
+        baseline = ping(svc.session)
+        sent: Counter[str] = Counter()
 
         def publish(key: str, payload: bytes) -> None:
             pubs[key].put(payload)
+            sent[key] += 1
             svc.counters.inc("published")
 
         stats = replay(
@@ -755,4 +767,10 @@ def replay_to_bus(
             max_passes=max_passes,
             should_stop=svc.stop_flag.is_set,
         )
+        # drain: the sender's queue is dropped when the session closes, so wait until every
+        # service on the bus has processed what was sent (see services.bus.barrier)
+        health = barrier(svc.session, timeout_s=drain_timeout_s, sent=sent, baseline=baseline)
+        stats.acknowledged_by = sorted(h.service for h in health)
+        if linger_s > 0:
+            time.sleep(linger_s)
     return stats

@@ -17,7 +17,15 @@ import pytest
 from schemas import keys
 from schemas.bus_config import BusConfig
 from schemas.messages import FeederFlow, MeasuredConcentration, ServiceHealth
-from services.bus import Counters, Service, TypedPublisher, live_services, open_session
+from services.bus import (
+    Counters,
+    Service,
+    TypedPublisher,
+    barrier,
+    live_services,
+    open_session,
+    ping,
+)
 
 LINE = "tline"
 IN_KEY = keys.measured_concentration(LINE, "in")
@@ -213,3 +221,30 @@ def test_service_shuts_down_cleanly_on_signal(sig):
         assert wait_for(lambda: "sleeper" not in live_services(watch.session, LINE, 0.5), 10)
     assert all(h.service == "sleeper" and h.pid == proc.pid for h in health)
     assert [h.seq for h in health] == list(range(len(health)))
+
+
+def test_barrier_returns_after_every_service_processed_the_burst():
+    """After a burst to a slow consumer, the barrier returns only once the consumer has every
+    message, so the sender may close its session without losing its queued messages."""
+    port = free_port()
+    n = 3000
+    seen = []
+
+    def slow(key, msg):
+        time.sleep(0.0002)
+        seen.append(msg.seq)
+
+    cfg = BusConfig.loopback(port, listen=True, line=LINE)
+    with Service("slow", cfg, health_period_s=0, install_signal_handlers=False) as svc:
+        svc.subscribe(IN_KEY, slow, model=MeasuredConcentration)
+        with open_session(BusConfig.loopback(port, listen=False, line=LINE)) as src:
+            pub = TypedPublisher(src, IN_KEY, MeasuredConcentration)
+            assert wait_for(pub.has_subscribers, 10)
+            baseline = ping(src)
+            for i in range(n):
+                pub.publish(dict(t=i, sensor="in", component="api", concentration_pct_w_w=1.0))
+            replies = barrier(src, timeout_s=20, sent={IN_KEY: n}, baseline=baseline)
+            count_at_barrier = len(seen)
+    assert [h.service for h in replies] == ["slow"], replies
+    assert count_at_barrier == n
+    assert replies[0].counters["received"] == n
