@@ -323,3 +323,44 @@ def test_cli_inspect_and_schemas(tmp_path):
     )
     assert r.returncode == 0
     assert (tmp_path / "s" / "schemas.messages.OosAlert.json").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_twin_record_finalizes_the_file_on_signal(tmp_path, sig):
+    """`twin record` stopped by SIGINT/SIGTERM exits 0 and leaves a complete (indexed) file
+    holding every message it received."""
+    from services.bus import TypedPublisher, barrier, open_session, ping
+
+    out = tmp_path / "sig.mcap"
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [*TWIN, "record", str(out), "--listen", ep, "--no-health"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        with open_session(BusConfig(connect=[ep], line=LINE)) as s:
+            pub = TypedPublisher(s, CONC, MeasuredConcentration)
+            deadline = time.monotonic() + 10
+            while not pub.has_subscribers() and time.monotonic() < deadline:
+                time.sleep(0.02)
+            base = ping(s)
+            for i in range(300):
+                pub.publish(conc(0.1 * i, i))
+            acks = barrier(s, sent={CONC: 300}, baseline=base, timeout_s=20)
+            assert [h.service for h in acks] == ["recorder"]
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, stderr
+    assert "recorded 300 messages" in stdout and "stopped by signal" in stdout
+    with open(out, "rb") as f:
+        summary = make_reader(f).get_summary()  # a finalized file has its summary
+    assert summary.statistics.message_count == 300
+    assert [m.decode().seq for m in read_recording(out).messages] == list(range(300))
