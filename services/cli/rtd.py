@@ -371,7 +371,7 @@ def _reproduce(args: argparse.Namespace) -> int:
     axs[0].plot(run.t, run.c, ".", color="0.7", ms=3, label="measured")
     axs[0].plot(run.t, run.c_true + run.baseline_offset, "k", lw=1, label="truth")
     for name in ("SA", "WT", "SV", "FFT"):
-        axs[0].plot(run.t, R._denoise(y, R.SEED_METHODS[name]), lw=1, label=name)
+        axs[0].plot(run.t, R.apply_method(y, R.SEED_METHODS[name]), lw=1, label=name)
     axs[0].set_xlim(0, 100)
     axs[0].set_xlabel("t (s)")
     axs[0].set_ylabel("C (% w/w)")

@@ -47,6 +47,7 @@ __all__ = [
     "DURATIONS",
     "INTENSITIES",
     "clean",
+    "apply_method",
     "denoise_table",
     "truncation_table",
     "funnel_cases",
@@ -76,7 +77,8 @@ def clean(run: SyntheticRun) -> np.ndarray:
     return hampel(run.c, t=run.t).y
 
 
-def _denoise(y: np.ndarray, spec: dict) -> np.ndarray:
+def apply_method(y: np.ndarray, spec: dict) -> np.ndarray:
+    """Denoise y with one entry of :data:`SEED_METHODS`."""
     m = spec["method"]
     if m.startswith("auto_"):
         fn = {
@@ -99,7 +101,7 @@ def denoise_table(runs: Iterable[SyntheticRun]) -> tuple[pd.DataFrame, pd.DataFr
     for run in runs:
         y = clean(run)
         truth = run.c_true + run.baseline_offset
-        variants = {"Original": y} | {k: _denoise(y, v) for k, v in SEED_METHODS.items()}
+        variants = {"Original": y} | {k: apply_method(y, v) for k, v in SEED_METHODS.items()}
         for name, yh in variants.items():
             m = denoise_metrics(run.t, y, yh)
             m.update(truth_metrics(run.t, yh, truth))
