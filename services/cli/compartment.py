@@ -258,6 +258,7 @@ def write_build_figures(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
+    from matplotlib.colors import BoundaryNorm, ListedColormap
 
     from twin_core.compartment import rsd_decay
 
@@ -267,20 +268,34 @@ def write_build_figures(
     ext = [fields.y_edges[0], fields.y_edges[-1], fields.z_edges[0], fields.z_edges[-1]]
 
     nv = len(model.zones_)
-    fig, axes = plt.subplots(1, nv, figsize=(4 * nv, 3.6), squeeze=False)
+    zmin = min(int(z.min()) for z in model.zones_.values())
+    zmax = max(int(z.max()) for z in model.zones_.values())
+    levels = np.arange(zmin, zmax + 1)
+    if zmin == -2 and zmax <= 1:  # sign zones: empty, -1, 0, +1
+        cmap = ListedColormap(["white", "#3b4cc0", "#a1d99b", "#b40426"][: levels.size])
+    else:
+        cmap = ListedColormap(
+            ["white"] + list(plt.get_cmap("viridis")(np.linspace(0, 1, max(levels.size - 1, 1))))
+        )
+    norm = BoundaryNorm(np.arange(zmin - 0.5, zmax + 1.5), cmap.N)
+    fig, axes = plt.subplots(
+        1, nv, figsize=(3.8 * nv + 1, 3.6), squeeze=False, layout="constrained"
+    )
     for ax, (name, zmap) in zip(axes[0], model.zones_.items()):
-        im = ax.imshow(zmap[0].T, origin="lower", extent=ext, cmap="RdBu", vmin=-2, vmax=1)
+        im = ax.imshow(zmap[0].T, origin="lower", extent=ext, cmap=cmap, norm=norm)
         ax.set_title(f"zones of {name}, slice x=0")
         ax.set_xlabel("y (m)")
-        ax.set_ylabel("z (m)")
-    fig.colorbar(im, ax=axes[0].tolist(), label="zone (-2 empty)")
+    axes[0][0].set_ylabel("z (m)")
+    fig.colorbar(im, ax=axes[0].tolist(), ticks=levels, label="zone (-2 empty)")
     files.append(out / "zone_maps.png")
     fig.savefig(files[-1], dpi=110)
     plt.close(fig)
 
     maps = dict(model.maps_)
     maps["overlay (compartments)"] = model.labels_
-    fig, axes = plt.subplots(1, len(maps), figsize=(4 * len(maps), 3.6), squeeze=False)
+    fig, axes = plt.subplots(
+        1, len(maps), figsize=(3.8 * len(maps), 3.6), squeeze=False, layout="constrained"
+    )
     for ax, (name, lab) in zip(axes[0], maps.items()):
         sl = lab[0].astype(float)
         sl[sl < 0] = np.nan
