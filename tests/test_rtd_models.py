@@ -147,6 +147,14 @@ def test_dead_volume_and_bypass_variants():
     assert m == pytest.approx(11.92 + 1.4 * mean_ad, rel=1e-6)
     var_ad = 16.37**2 * (2 / 7.67 + 8 / 7.67**2)
     assert v == pytest.approx(var_ad * 1.4**2 + 2 * 0.4 * 6.0 * mean_ad, rel=1e-5)
+    # Pe = 100 takes the Fourier inversion path
+    a, m, v, _ = _moments(
+        T_COARSE, M.axial_dispersion_open_dead_volume(T_COARSE, 11.92, 16.37, 100.0, 0.4, 6.0)
+    )
+    mean_ad, var_ad = 16.37 * 1.02, 16.37**2 * (2 / 100 + 8 / 100**2)
+    assert a == pytest.approx(1.0, abs=1e-9)
+    assert m == pytest.approx(11.92 + 1.4 * mean_ad, rel=1e-9)
+    assert v == pytest.approx(var_ad * 1.4**2 + 2 * 0.4 * 6.0 * mean_ad, rel=1e-6)
     t = np.linspace(0, 200, 2001)
     np.testing.assert_allclose(
         M.axial_dispersion_open_dead_volume(t, 11.92, 16.37, 7.67, 0.0, 6.0),
