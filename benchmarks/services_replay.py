@@ -33,8 +33,8 @@ def main() -> int:
     ap.add_argument(
         "--express",
         choices=["on", "off"],
-        default=None,
-        help="override the config's zenoh express setting",
+        default="off",
+        help="zenoh express publishers (off: batching, the fast-replay setting)",
     )
     a = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="twin-bench-"))
