@@ -98,6 +98,7 @@ def main() -> int:
     }
     dropped = {k: v - counts.get(k, 0) for k, v in expected.items() if counts.get(k, 0) != v}
     derived = sum(counts.values()) - n
+    print(f"zenoh express: {spec.express}")
     print(
         f"replayed {n} messages: publisher done in {w_pub:.2f} s, diverter caught up in "
         f"{w_all:.2f} s"
