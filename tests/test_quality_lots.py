@@ -9,7 +9,8 @@ from twin_core.rtd.models import axial_dispersion_open, cstr
 
 def test_table_6_2_lot_boundaries():
     """Table 6.2 AD parameters (tau_d 11.92 s, tau 16.37 s, Pe 7.67) give 0.5 % / 99.5 %
-    boundaries of 17.3 s / 72.2 s for the noise-free model (SEED_NOTES)."""
+    boundaries of 17.3 s / 72.2 s for the noise-free model (seed Table 6.2,
+    standard open-open AD form)."""
     t = np.linspace(0, 300, 3001)
     lo, hi = lot_boundaries(t, axial_dispersion_open(t, 11.92, 16.37, 7.67))
     assert lo == pytest.approx(17.3, abs=0.05)

@@ -32,7 +32,8 @@ def test_ad_open_integrates_to_one_and_mean_levenspiel(pe):
 
 
 def test_ad_open_zero_before_delay_and_seed_mean():
-    """E = 0 for t <= tau_d; Table 6.2 parameters give a mean residence time ~32.5 s (SEED_NOTES)."""
+    """E = 0 for t <= tau_d; Table 6.2 parameters give a mean residence time ~32.5 s
+    (seed Table 6.2 with the standard AD moments)."""
     e = M.axial_dispersion_open(T, 11.92, 16.37, 7.67)
     assert np.all(e[T <= 11.92] == 0.0)
     _, m, _, _ = _moments(T, e)

@@ -157,8 +157,8 @@ def axial_dispersion_open(t: ArrayLike, tau_d: float, tau: float, pe: float) -> 
     E(t) = sqrt(Pe / (4 pi s tau)) exp(-Pe (tau - s)^2 / (4 tau s)),  s = t - tau_d > 0,
     E(t) = 0 for t <= tau_d.
 
-    The seed's Eq. (7) is garbled in transcription; this is the standard form (SEED_NOTES,
-    Levenspiel 1999 Eq. 13.19 in dimensional time). Moments: mean = tau_d + tau (1 + 2/Pe),
+    The seed's Eq. (7) is garbled in transcription; this is the standard form
+    (Levenspiel 1999 Eq. 13.19 in dimensional time). Moments: mean = tau_d + tau (1 + 2/Pe),
     variance = tau^2 (2/Pe + 8/Pe^2). Transfer function G(s) = exp(Pe (1 - q) / 2) / q,
     q = sqrt(1 + 4 s tau / Pe).
     """

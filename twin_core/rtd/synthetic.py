@@ -1,7 +1,7 @@
 """Seeded synthetic tracer campaign modelled on the seed's chapter 6 experiments.
 
 Four tracer amounts (10, 7.5, 6, 5 g) x three repeats pulsed into 12 kg/h of bulk powder
-(SEED_NOTES). Each run's true RTD is the open-open axial dispersion model with parameters drawn
+(seed 6.1.2). Each run's true RTD is the open-open axial dispersion model with parameters drawn
 from the Table 6.2 untruncated row (tau_d 11.92 +/- 0.57 s, tau 16.37 +/- 0.51 s,
 Pe 7.67 +/- 0.13). True outlet concentration (% w/w) = 100 r m E(t) / Q times a day factor, with the apparent
 recovery r = 0.7 chosen so that the 10 g peak (~10 % w/w) matches Table 6.1's heights
