@@ -133,6 +133,7 @@ def service_alive(line: str, service: str) -> str:
 # signal -> model registry
 
 _REGISTRY: dict[str, type[Message]] = {}
+_MISSES: set[str] = set()
 _discovered = False
 
 
@@ -140,6 +141,7 @@ def register_signal(signal: str, model: type[Message]) -> None:
     """Map a signal name (last key segment) to its message model. Overrides earlier entries."""
     _check_segment("signal", signal)
     _REGISTRY[signal] = model
+    _MISSES.discard(signal)
 
 
 def _all_subclasses(cls: type) -> list[type]:
@@ -183,8 +185,10 @@ def _refresh() -> None:
 
 def model_for_signal(signal: str) -> type[Message] | None:
     """Message model registered for a signal name, or None."""
-    if signal not in _REGISTRY:
+    if signal not in _REGISTRY and signal not in _MISSES:
         _refresh()
+        if signal not in _REGISTRY:
+            _MISSES.add(signal)
     return _REGISTRY.get(signal)
 
 

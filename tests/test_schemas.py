@@ -291,3 +291,14 @@ def test_bus_config_defaults_and_security_rendering(tmp_path):
     )
     loaded = BusConfig.from_file(tmp_path / "bus.yaml")
     assert loaded.mode == "router" and loaded.listen == ["tcp/127.0.0.1:7500"]
+
+
+def test_register_signal_after_a_miss():
+    from schemas.base import Message
+
+    class Foo(Message):
+        value: float
+
+    assert keys.model_for_key("twin/l/x/y/foo_signal_test") is None
+    keys.register_signal("foo_signal_test", Foo)
+    assert keys.model_for_key("twin/l/x/y/foo_signal_test") is Foo
