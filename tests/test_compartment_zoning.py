@@ -110,3 +110,21 @@ def test_model_rejects_bad_parameters():
         CompartmentModel(flow_source="magic").fit(case.fields)
     with pytest.raises(ValueError, match="tol_fraction"):
         CompartmentModel(tol_fraction=1.5).fit(case.fields)
+
+
+def test_model_with_thresholds_and_other_variables():
+    """Zones by several thresholds of several variables (5.2.3 generalised): a speed split in
+    three bands and the occupancy in two give zone tuples; every compartment holds one tuple."""
+    case = synthetic_blender_fields(4, 8, 8)
+    speed_th = list(
+        np.quantile(np.linalg.norm(case.fields.velocity, axis=-1)[case.mask], [0.3, 0.7])
+    )
+    m = CompartmentModel(
+        variables=("speed", "occupancy"),
+        thresholds={"speed": speed_th},
+        min_cells=1,
+    ).fit(case.fields)
+    assert set(np.unique(m.zones_["speed"][m.mask_])) == {0, 1, 2}
+    zones = np.stack([m.zones_["speed"], m.zones_["occupancy"]], -1)
+    for c in range(m.n_compartments_):
+        assert len(np.unique(zones[m.labels_ == c], axis=0)) == 1
