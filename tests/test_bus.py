@@ -248,3 +248,24 @@ def test_barrier_returns_after_every_service_processed_the_burst():
     assert [h.service for h in replies] == ["slow"], replies
     assert count_at_barrier == n
     assert replies[0].counters["received"] == n
+
+
+def test_router_routes_between_clients():
+    """The documented topology for more than two processes: a router and clients."""
+    port = free_port()
+    router_cfg = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[], line=LINE)
+    client_cfg = BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"], line=LINE)
+    got = []
+    with (
+        Service("router", router_cfg, health_period_s=0, install_signal_handlers=False),
+        Service("a", client_cfg, health_period_s=0, install_signal_handlers=False) as a,
+        Service("b", client_cfg, health_period_s=0, install_signal_handlers=False) as b,
+    ):
+        b.subscribe(IN_KEY, lambda k, m: got.append(m.seq), model=MeasuredConcentration)
+        pub = a.publisher(IN_KEY, MeasuredConcentration)
+        assert wait_for(pub.has_subscribers, 10)
+        for i in range(50):
+            pub.publish(dict(t=i, sensor="in", component="api", concentration_pct_w_w=1.0))
+        assert wait_for(lambda: len(got) == 50, 10)
+        assert live_services(a.session, LINE) == ["a", "b", "router"]
+    assert got == list(range(50))
