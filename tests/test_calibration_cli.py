@@ -35,16 +35,20 @@ def test_design_fit_solve(tmp_path, capsys):
     assert main(["calibrate", "design", "--out", str(tmp_path / "d")]) == 0
     phys = pd.read_csv(tmp_path / "d" / "design_physical.csv")
     assert len(phys) == 21 and (tmp_path / "d" / "correlation_map.png").stat().st_size > 0
-    assert main(["calibrate", "fit", "seed:bulk", "--out", str(tmp_path / "f")]) == 0
+    assert (
+        main(["calibrate", "fit", "seed:bulk", "--no-figures", "--out", str(tmp_path / "f")]) == 0
+    )
     summary = pd.read_csv(tmp_path / "f" / "summary.csv").set_index("response")
     assert summary.loc["shear_angle_deg", "sse"] == pytest.approx(188.135, abs=1e-3)
-    assert (tmp_path / "f" / "parity.png").exists()
+    assert set(pd.read_csv(tmp_path / "f" / "effect_summary.csv")["response"]) == set(summary.index)
     args = [
         "calibrate",
         "fit",
         "seed:feed_factor",
         "--criterion",
         "p",
+        "--responses",
+        "FF_max",
         "--predict",
         "seed:verification",
     ]
@@ -52,6 +56,8 @@ def test_design_fit_solve(tmp_path, capsys):
     pred = pd.read_csv(tmp_path / "ff" / "predictions.csv")
     assert list(pred["run"]) == ["V1", "V2"]
     assert (pred["FF_max:lower"] < pred["FF_max:predicted"]).all()
+    assert (tmp_path / "ff" / "parity.png").exists()
+    assert (tmp_path / "ff" / "profiler_FF_max.png").exists()
     rc = main(
         [
             "calibrate",

@@ -88,6 +88,9 @@ def test_figure_8_2_and_eq_10_two_step_stepwise(bulk):
     assert m.centers_["PP_SF"] == pytest.approx(0.35) and m.centers_["PW_SF"] == pytest.approx(0.35)
     assert round(m.r2_, 2) == 0.90
     assert r.step1_.sse_ == pytest.approx(424.987, abs=1e-3)
+    eff = m.effect_summary()
+    assert eff.index[0] == "PW_SF"  # largest |t| (8.23) in Fig. 8.2
+    assert eff.loc["PW_SF*PW_SF", "PValue"] == pytest.approx(0.0416, abs=1e-4)
     table = m.parameter_table()
     assert "(PP_SF-0.35)*(PP_SF-0.35)" in table.index
     assert "12.07512" in m.equation()

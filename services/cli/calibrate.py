@@ -106,6 +106,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="table of new runs to predict (95 %% prediction intervals), e.g. seed:verification",
     )
     f.add_argument("--out", help="output directory (models.json, parity.png, summary.csv)")
+    f.add_argument("--no-figures", action="store_true", help="tables only")
     f.set_defaults(func=_fit)
 
     s = csub.add_parser("solve", help="inverse calibration: parameters from bulk measurements")
@@ -251,7 +252,7 @@ def _fit_models(
 def _fit(args: argparse.Namespace) -> int:
     import pandas as pd
 
-    from twin_core.calibration.plots import plot_parity
+    from twin_core.calibration.plots import plot_parity, plot_prediction_profiles
 
     table = _load_table(args.table)
     factors = _factor_list(args, table)
@@ -301,10 +302,23 @@ def _fit(args: argparse.Namespace) -> int:
             json.dumps({k: m.to_dict() for k, m in models.items()}, indent=2)
         )
         (out / "report.txt").write_text("\n\n".join(m.report() for m in models.values()))
-        _save(plot_parity(models), out / "parity.png")
+        if not args.no_figures:
+            _save(plot_parity(models), out / "parity.png")
+            ranges = {f: (float(table[f].min()), float(table[f].max())) for f in factors}
+            for k, m in models.items():
+                if m.factors_:
+                    _save(plot_prediction_profiles(m, ranges), out / f"profiler_{k}.png")
+        effects = pd.concat(
+            [m.effect_summary().reset_index().assign(response=k) for k, m in models.items()],
+            ignore_index=True,
+        )
+        effects.to_csv(out / "effect_summary.csv", index=False)
         if pred is not None:
             pred.to_csv(out / "predictions.csv", index=False)
-        print(f"wrote {out}/summary.csv, models.json, report.txt, parity.png")
+        print(
+            f"wrote {out}/summary.csv, models.json, report.txt, parity.png, profiler_*.png, "
+            "effect_summary.csv"
+        )
     return 0
 
 

@@ -15,6 +15,7 @@ __all__ = [
     "plot_contours",
     "plot_profiles",
     "plot_feeder_trace",
+    "plot_prediction_profiles",
 ]
 
 
@@ -147,4 +148,29 @@ def plot_feeder_trace(trace: object) -> Figure:
         axes[0].plot(t, sp, "k--", lw=1, label="set point")
         axes[0].legend(fontsize=8)
     axes[-1].set_xlabel("time (s)")
+    return fig
+
+
+def plot_prediction_profiles(
+    model: object, ranges: Mapping[str, tuple[float, float]], at: Mapping[str, float] | None = None
+) -> Figure:
+    """JMP-style prediction profiler (seed Figs. 8.9-8.11): the prediction and its 95 %
+    confidence band along each factor of the model, the others held at ``at`` (default: the
+    model's centres, i.e. the design means)."""
+    m = getattr(model, "model_", model)
+    factors = list(m.factors_)
+    base = {f: float((at or {}).get(f, m.centers_[f])) for f in factors}
+    fig = Figure(figsize=(2.8 * max(len(factors), 1), 3.0), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, max(len(factors), 1))).ravel()
+    for ax, f in zip(axes, factors):
+        lo, hi = ranges[f]
+        x = np.linspace(lo, hi, 60)
+        data = {g: np.full(x.size, base[g]) for g in factors}
+        data[f] = x
+        iv = m.predict_interval(data, kind="confidence")
+        ax.fill_between(x, iv["lower"], iv["upper"], alpha=0.25)
+        ax.plot(x, iv["predicted"], "C3-")
+        ax.axvline(base[f], color="k", ls=":", lw=1)
+        ax.set_xlabel(f)
+    axes[0].set_ylabel(m.response)
     return fig

@@ -310,6 +310,15 @@ class ResponseSurface:
             index=pd.Index(labels, name="Term"),
         )
 
+    def effect_summary(self) -> pd.DataFrame:
+        """JMP 'Effect Summary': terms by LogWorth = -log10(p), largest first."""
+        p = self.pvalues_.drop("Intercept")
+        return (
+            pd.DataFrame({"LogWorth": -np.log10(np.maximum(p.to_numpy(), 1e-300)), "PValue": p})
+            .sort_values("LogWorth", ascending=False)
+            .rename_axis("Source")
+        )
+
     def equation(self, digits: int = 7) -> str:
         """The fitted surface as text in the seed's form (e.g. its Eq. 10)."""
         parts = [f"{self.coef_.iloc[0]:.{digits}g}"]
