@@ -94,7 +94,9 @@ class TypedPublisher:
     """Publishes validated messages of one model on one key expression.
 
     ``publish(msg)`` takes a model instance or a dict of its fields (``seq`` is filled in from
-    the publisher's counter when missing) and returns the message sent.
+    the publisher's counter when missing) and returns the message sent. A message whose ``t`` is
+    earlier than the previous one raises ValueError (subscribers would reject it), unless
+    ``check_time=False``.
     """
 
     def __init__(
@@ -106,11 +108,14 @@ class TypedPublisher:
         counters: Counters | None = None,
         congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.BLOCK,
         express: bool = False,
+        check_time: bool = True,
     ) -> None:
         keys_mod.parse_key(key)
         self.key = key
         self.model = model
         self.counters = counters or Counters()
+        self.check_time = check_time
+        self.last_t: float | None = None
         self.seq = 0
         self._pub = session.declare_publisher(
             key, encoding=JSON, congestion_control=congestion_control, express=express
@@ -125,7 +130,12 @@ class TypedPublisher:
             raise TypeError(
                 f"message for {self.key} must be a {self.model.__name__}, got {type(msg).__name__}"
             )
+        if self.check_time and self.last_t is not None and msg.t < self.last_t:
+            raise ValueError(
+                f"t must not go backwards on {self.key}: got t={msg.t} after {self.last_t}"
+            )
         self._pub.put(msg.to_json_bytes())
+        self.last_t = msg.t
         self.seq = msg.seq + 1
         self.counters.inc("published")
         return msg

@@ -118,7 +118,7 @@ def test_invalid_payloads_are_counted_and_skipped():
     ):
         sink.subscribe("twin/tline/feeder/**", lambda k, m: got.append(m))
         time.sleep(1.0)
-        pub = TypedPublisher(src, key, FeederFlow)
+        pub = TypedPublisher(src, key, FeederFlow, check_time=False)
         pub.publish(dict(t=1.0, **good))
         src.put(key, b"{not json")
         src.put(key, b'{"t": 2.0, "seq": 1}')
@@ -173,6 +173,18 @@ def test_publish_validates():
         with pytest.raises(ValueError, match=r"got .\*."):
             TypedPublisher(s, "twin/l/feeder/*/flow", FeederFlow)
         assert pub.counters.get("published") == 0
+        good = dict(
+            component="api",
+            mass_flow_kg_h=1,
+            screw_speed_rpm=1,
+            hopper_mass_kg=1,
+            feed_factor_g_rev=1,
+        )
+        pub.publish(dict(t=5.0, **good))
+        with pytest.raises(ValueError, match=r"t must not go backwards .* got t=4.0 after 5.0"):
+            pub.publish(dict(t=4.0, **good))
+        pub.publish(dict(t=5.0, **good))
+        assert pub.counters.get("published") == 2 and pub.seq == 2
 
 
 SERVICE_SCRIPT = textwrap.dedent(
