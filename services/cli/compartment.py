@@ -45,8 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument(
         "--n-upstream",
         type=int,
-        default=2,
-        help="upstream copies of the transit form (1: 3x faster first prediction, ~1e-3 error)",
+        default=None,
+        help="upstream copies of the transit form (default: the fewest with < 1e-4 dropped "
+        "backward crossings per transit)",
     )
     b.add_argument("--rpm", type=float, default=None, help="blade speed basis of the fields")
     b.add_argument("--split-axis", type=int, default=1, help="axis of the two-type RSD split")

@@ -40,7 +40,7 @@ def blender_model_fields(
         "outlet_kg_s": dis[outlet].tolist(),
         "n_sections": n_sections,
         "section_form": model.section_form,
-        "n_upstream": model.n_upstream,
+        "n_upstream": model.n_upstream_,
         "throughput_kg_h": float(model.throughput_kg_s_ * 3600.0),
         "rpm_basis": rpm_basis,
         "section_length_m": model.section_length_m_,

@@ -38,9 +38,9 @@ from twin_core.compartment.flows import (
 from twin_core.compartment.network import (
     CompartmentNetwork,
     _weights,
-    first_passage_network,
     open_section,
     periodic_throughput,
+    transit_network,
 )
 from twin_core.compartment.zoning import (
     VARIABLES,
@@ -72,7 +72,8 @@ class CompartmentModel:
     projection_weights : "uniform" (minimal Euclidean correction) or "relative".
     section_form : "transit" (record-passage first-passage network, default) or "closed"
         (closed-closed cut of the periodic face) for ``section_``.
-    n_upstream : upstream copies of the transit form (2 leaves a truncation error < 1e-4).
+    n_upstream : upstream copies of the transit form; None (default) picks the fewest whose
+        dropped backward crossings per transit are < 1e-4 (``n_upstream_`` after fit).
     resolution : "zones" (compartments from the zone maps) or "cells" (every occupied cell
         its own compartment: the finest network, used for radial mixing, where lumping
         mixes too fast).
@@ -86,7 +87,8 @@ class CompartmentModel:
     ``transit_section_`` (record-passage network), ``section_`` (the one chosen by
     ``section_form``), ``seed_flows_``, ``seed_imbalance_``,
     ``throughput_kg_s_``, ``mean_residence_time_s_``, ``axial_velocity_m_s_`` (L Q / V),
-    ``section_length_m_``, ``flow_source_``.
+    ``section_length_m_``, ``flow_source_``, ``isolated_`` (compartments without any flow
+    after projection: stagnant holdup that no tracer reaches) and ``isolated_holdup_kg_``.
     """
 
     def __init__(
@@ -99,7 +101,7 @@ class CompartmentModel:
         flow_source: str = "auto",
         projection_weights: str = "uniform",
         section_form: str = "transit",
-        n_upstream: int = 2,
+        n_upstream: int | None = None,
         resolution: str = "zones",
         axial_axis: int = 0,
     ) -> None:
@@ -133,7 +135,7 @@ class CompartmentModel:
             )
         if self.resolution not in ("zones", "cells"):
             raise ValueError(f"resolution must be 'zones' or 'cells', got {self.resolution!r}")
-        if self.n_upstream < 0:
+        if self.n_upstream is not None and self.n_upstream < 0:
             raise ValueError(f"n_upstream must be >= 0, got {self.n_upstream}")
         if self.min_cells < 1:
             raise ValueError(f"min_cells must be >= 1, got {self.min_cells}")
@@ -214,7 +216,8 @@ class CompartmentModel:
         self.seed_imbalance_ = imbalance_report(self.seed_flows_)
         self.section_length_m_ = float(fields.edges[ax][-1] - fields.edges[ax][0])
         self.closed_section_ = open_section(self.periodic_, weights=self.projection_weights)
-        self.transit_section_ = first_passage_network(self.periodic_, self.n_upstream)
+        self.transit_section_ = transit_network(self.periodic_, self.n_upstream)
+        self.n_upstream_ = int(self.transit_section_.meta["n_upstream"])
         self.section_ = (
             self.transit_section_ if self.section_form == "transit" else self.closed_section_
         )
@@ -240,6 +243,11 @@ class CompartmentModel:
         f = project_flows(C, b, f0, weights=_weights(f0, self.projection_weights))
         self.correction_rel_ = float(np.linalg.norm(f - f0) / max(np.linalg.norm(f0), 1e-300))
         keep = f > 0
+        touched = np.zeros(n, dtype=bool)
+        touched[raw.src[keep]] = True
+        touched[raw.dst[keep]] = True
+        self.isolated_ = np.flatnonzero(~touched)
+        self.isolated_holdup_kg_ = float(self.holdup_kg_[~touched].sum())
         return CompartmentNetwork(
             holdup=self.holdup_kg_,
             src=raw.src[keep],
@@ -264,7 +272,11 @@ class CompartmentModel:
             "raw_imbalance_max_rel": self.raw_imbalance_["max_rel"],
             "projection_correction_rel": self.correction_rel_,
             "section_form": self.section_form,
+            "n_upstream": self.n_upstream_,
+            "truncated_crossings": self.transit_section_.meta["truncated_crossings"],
             "open_correction_rel": self.closed_section_.meta.get("open_correction_rel", 0.0),
             "seed_imbalance_max_rel": self.seed_imbalance_["max_rel"],
             "dropped_flow_kg_s": self.raw_flows_.dropped_kg_s,
+            "isolated_compartments": int(self.isolated_.size),
+            "isolated_holdup_kg": self.isolated_holdup_kg_,
         }

@@ -440,11 +440,30 @@ def first_passage_network(
         meta={"n_upstream": n_upstream, "entry": entry},
     )
     if entry == "record":
-        p = record_entry(fp, net.dst[fwd], net.src[fwd], net.rate[fwd], n)
+        p, occ = record_entry(fp, net.dst[fwd], net.src[fwd], net.rate[fwd], n)
         fp.feed = p * feed.sum()
+        # expected number of backward crossings out of the most upstream copy per transit:
+        # the events the reflecting truncation drops (0 for an infinite chain of copies)
+        fp.meta["truncated_crossings"] = float(
+            np.sum(net.rate[bwd] / net.holdup[net.src[bwd]] * occ[net.src[bwd]])
+        )
     q_net = float(net.rate[fwd].sum() - net.rate[bwd].sum())
     if q_net > 0:
         fp.meta["tau"] = net.total_holdup / q_net
+    return fp
+
+
+def transit_network(
+    net: CompartmentNetwork, n_upstream: int | None = None, tol: float = 1e-4, max_upstream: int = 8
+) -> CompartmentNetwork:
+    """Record-passage first-passage network with ``n_upstream`` copies, or (None) the fewest
+    copies, from 1, whose dropped backward crossings per transit are below ``tol``."""
+    if n_upstream is not None:
+        return first_passage_network(net, n_upstream)
+    for k in range(1, max_upstream + 1):
+        fp = first_passage_network(net, k)
+        if fp.meta["truncated_crossings"] < tol:
+            break
     return fp
 
 
@@ -464,7 +483,8 @@ def record_entry(
     max_iter: int = 200,
     tol: float = 1e-13,
 ) -> np.ndarray:
-    """Stationary entry law at record passages of a first-passage network ``fp``.
+    """Stationary entry law at record passages of a first-passage network ``fp`` and the
+    time-integrated tracer (-A)^-1 p it leaves in every state.
 
     Starting from an entry law p on the last copy, the time-integrated tracer is
     (-A)^-1 p and the absorption flux through each forward periodic edge (leave -> land) is
@@ -473,12 +493,17 @@ def record_entry(
     """
     from scipy.sparse.linalg import splu
 
-    A = fp.rate_matrix().tocsc()
-    lu = splu(-A)
+    A = fp.rate_matrix().tocsr()
+    # states without any way out (isolated compartments, traps of the truncated copy) hold no
+    # tracer that can be absorbed; solve on the others so that -A is non-singular
+    live = A.diagonal() < 0
+    idx = np.flatnonzero(live)
+    lu = splu((-A[idx][:, idx]).tocsc())
     off = fp.n - n
     p = fp.feed / fp.feed.sum()
     for _ in range(max_iter):
-        occ = lu.solve(p)
+        occ = np.zeros(fp.n)
+        occ[idx] = lu.solve(p[idx])
         flux = rate / fp.holdup[off + leave] * occ[off + leave]
         p_new = np.zeros(fp.n)
         np.add.at(p_new, off + land, flux)
@@ -487,7 +512,9 @@ def record_entry(
             p = p_new
             break
         p = p_new
-    return p
+    occ = np.zeros(fp.n)
+    occ[idx] = lu.solve(p[idx])
+    return p, occ
 
 
 def closed_network(net: CompartmentNetwork) -> CompartmentNetwork:
