@@ -12,7 +12,7 @@
 """
 
 from twin_core.closeloop.data import RunData, Split, hampel, make_split
-from twin_core.closeloop.diagnostics import residual_diagnostics
+from twin_core.closeloop.diagnostics import pulse_responses, residual_diagnostics
 from twin_core.closeloop.identify import (
     Candidate,
     Identification,
@@ -47,6 +47,7 @@ __all__ = [
     "make_effect",
     "make_split",
     "online_finding",
+    "pulse_responses",
     "register",
     "residual_diagnostics",
 ]

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from twin_core.closeloop.data import RunData
-from twin_core.closeloop.diagnostics import residual_diagnostics
+from twin_core.closeloop.diagnostics import pulse_responses, residual_diagnostics
 from twin_core.closeloop.identify import FitResult, Identification, IdentifyOptions, identify
 from twin_core.plant.config import line_config_to_dict
 from twin_core.plant.model import LineInputs, LineModel
@@ -199,8 +199,13 @@ class CloseLoopResult:
 
 
 def _diag(
-    data: RunData, model: LineModel, ident: Identification, pred: np.ndarray
+    data: RunData,
+    model: LineModel,
+    ident: Identification,
+    pred: np.ndarray,
+    effects: list | None = None,
 ) -> dict[str, Any]:
+    """Residual diagnostics and pulse responses of the model (declared + ``effects``)."""
     r = ident.measured - pred
     d = residual_diagnostics(
         data.t_s,
@@ -209,6 +214,21 @@ def _diag(
         mask=ident.split.train | ident.split.heldout,
         inputs=data.inputs,
         events=data.events,
+    )
+    aug = model.augmented(effects or [])
+    inp = data.inputs
+    backgrounds = []
+    for i in range(len(inp.tracers)):
+        without = LineInputs(
+            t_s=inp.t_s,
+            flows_kg_h=inp.flows_kg_h,
+            components=inp.components,
+            refilling=inp.refilling,
+            tracers=[p for j, p in enumerate(inp.tracers) if j != i],
+        )
+        backgrounds.append(aug.predict(without))
+    d["pulse_responses"] = pulse_responses(
+        data.t_s, ident.measured, pred, inp, backgrounds=backgrounds
     )
     # keep the report compact: the spectrum at most 64 points
     sp = d["spectrum"]
@@ -234,7 +254,11 @@ def close_loop(
         options = IdentifyOptions(**options)
     ident = identify(declared_model, run_data, options)
     before = _diag(run_data, declared_model, ident, ident.base.pred)
-    after = _diag(run_data, declared_model, ident, ident.final.pred) if ident.accepted else before
+    after = (
+        _diag(run_data, declared_model, ident, ident.final.pred, ident.final.effects)
+        if ident.accepted
+        else before
+    )
     return CloseLoopResult(run_data, declared_model, ident, before, after, recording)
 
 
@@ -261,9 +285,14 @@ def online_finding(
 ) -> Finding:
     """Close the loop on one window of arrays (the live twin's periodic check).
 
-    ``inputs`` must be on ``t_s``. Returns a :class:`Finding`; ``augmented_effects`` are the
-    model's effects plus the ones found, ready for ``LineModel(config, augmented_effects)``.
+    ``inputs`` must be on ``t_s``. The model assumes the line at steady state (first flows)
+    before ``t_s[0]``: pass a window that starts with some history and exclude it from the
+    fit with ``skip_s`` (default here: 150 s, about 4.5 mean residence times of the Table 6.2
+    blender). Returns a :class:`Finding`; ``augmented_effects`` are the model's effects plus
+    the ones found, ready for ``LineModel(config, augmented_effects)``.
     """
+    if options is None:
+        options = IdentifyOptions(skip_s=150.0)
     data = RunData(t_s, measured, inputs, [dict(e) for e in events], name="window")
     res = close_loop(data, declared_model, options)
     rep = res.to_dict()
