@@ -1,7 +1,8 @@
 """Benchmark: latency from an NIR sample to its OOS decision, at real-time rate on loopback.
 
 The benchmark process plays the plant at real time (10 Hz flows and NIR, ideal feeders) with
-short NIR excursions out of the specification every 2 s; blender and oos run as supervised
+short NIR excursions out of the specification every second (3 samples out: an
+episode opens, then closes after 3 samples back in); blender and oos run as supervised
 processes. For every decision of the diverter (the ``.open`` divert command when an episode
 opens, the alert when it closes) the latency is the wall time from publishing the NIR sample
 that completed the decision (its plant time is the decision's ``t``) to receiving the decision.
@@ -108,8 +109,7 @@ def main() -> int:
                         feed_factor_g_rev=1.0,
                     )
                 )
-            phase = (i % 20) * dt  # 2 s period: out of spec for 0.6 s
-            c = 13.0 if 1.0 <= phase < 1.6 else 10.0
+            c = 13.0 if 2 <= i % 10 < 5 else 10.0  # 1 s period: 3 samples out of spec
             nir.publish(
                 MeasuredConcentration(
                     t=t, seq=i, sensor="nir1", component="api", concentration_pct_w_w=c

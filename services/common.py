@@ -8,9 +8,9 @@ restarted after a crash therefore receives everything its upstream published, re
 state deterministically, and suppresses the outputs it had already published (their ids are in
 an append-only log in the run's state directory): no output lost, none duplicated.
 
-Processing is single-threaded: zenoh callbacks validate (``services.bus.MessageValidator``:
-bad JSON / schema / time order counted and skipped) and enqueue; :meth:`LiveService.run`
-handles the queue in the main thread.
+Processing is serialised: zenoh callbacks validate (``services.bus.MessageValidator``: bad
+JSON / schema counted and skipped) and, after the catch-up, handle the message right there under
+one lock (no thread hand-off on the latency path); during the catch-up they queue.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import os
 import queue
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -183,6 +184,9 @@ class LiveService(Service):
         )
         self.spec = spec
         self.inbox: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+        self._hlock = threading.RLock()
+        self._direct = False
+        self._active = False
         self.state_path = state_dir(spec)
 
     # -- declarations ------------------------------------------------------------------------
@@ -207,7 +211,24 @@ class LiveService(Service):
         t = getattr(msg, "t", None)
         if t is not None and t > self.plant_time_s:
             self.plant_time_s = t
-        self.inbox.put((key, msg))
+        if self._direct:
+            with self._hlock:
+                self._safe_handle(key, msg)
+            return
+        with self._hlock:
+            if self._direct:
+                self._safe_handle(key, msg)
+            else:
+                self.inbox.put((key, msg))
+
+    def _safe_handle(self, key: str, msg: Any) -> None:
+        self._active = True
+        try:
+            self.handle(key, msg)
+        except Exception as exc:  # noqa: BLE001 - one bad message must not kill the service
+            self.counters.inc("handler_errors")
+            self.counters.last_error = f"{type(exc).__name__}: {exc}"[:500]
+            log.exception("%s: handling %s failed", self.name, key)
 
     # -- lifecycle ---------------------------------------------------------------------------
     def setup(self) -> None:
@@ -223,23 +244,26 @@ class LiveService(Service):
         """Called once at shutdown, before the session closes."""
 
     def run(self, timeout_s: float | None = None) -> int:
+        """Catch up, then handle each message as it arrives, in the subscriber's callback under
+        a lock (no thread hand-off on the latency path); call :meth:`idle` after ``idle_s``
+        without input."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        get = self.inbox.get
         self._catch_up()
-        while not self.stopping:
-            try:
-                key, msg = get(timeout=self.idle_s)
-            except queue.Empty:
-                self.idle()
-                if deadline is not None and time.monotonic() >= deadline:
+        with self._hlock:
+            while True:  # what arrived during the catch-up, then switch to direct handling
+                try:
+                    key, msg = self.inbox.get_nowait()
+                except queue.Empty:
                     break
-                continue
-            try:
-                self.handle(key, msg)
-            except Exception as exc:  # noqa: BLE001 - one bad message must not kill the service
-                self.counters.inc("handler_errors")
-                self.counters.last_error = f"{type(exc).__name__}: {exc}"[:500]
-                log.exception("%s: handling %s failed", self.name, key)
+                self._safe_handle(key, msg)
+            self._direct = True
+        while not self.stop_flag.wait(self.idle_s):
+            with self._hlock:
+                if not self._active:
+                    self.idle()
+                self._active = False
+            if deadline is not None and time.monotonic() >= deadline:
+                break
         return 0
 
     def _catch_up(self) -> None:
@@ -257,13 +281,9 @@ class LiveService(Service):
             batch.append((float(getattr(msg, "t", 0.0)), len(batch), key, msg))
         batch.sort(key=lambda x: (x[0], x[1]))
         self.counters.inc("caught_up", len(batch))
-        for _, _, key, msg in batch:
-            try:
-                self.handle(key, msg)
-            except Exception as exc:  # noqa: BLE001
-                self.counters.inc("handler_errors")
-                self.counters.last_error = f"{type(exc).__name__}: {exc}"[:500]
-                log.exception("%s: handling %s failed", self.name, key)
+        with self._hlock:
+            for _, _, key, msg in batch:
+                self._safe_handle(key, msg)
 
     def serve(self) -> int:
         """Open, set up, run until SIGINT/SIGTERM, finish and close."""
