@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
+import threading
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable
@@ -312,7 +312,6 @@ def _recover(path: Path) -> Recording:
     with open(path, "rb") as f:
         reader = StreamReader(f, validate_crcs=True)
         records = reader.records
-        pending: list[RecordedMessage] = []
         while True:
             try:
                 record = next(records)
@@ -329,9 +328,7 @@ def _recover(path: Path) -> Recording:
                 ch = channels.get(record.channel_id)
                 if ch is None:
                     continue
-                pending.append(_recorded(ch, schemas.get(ch.schema_id), record))
-            messages.extend(pending)
-            pending.clear()
+                messages.append(_recorded(ch, schemas.get(ch.schema_id), record))
             good_pos = reader._stream.count  # bytes consumed by complete records
     size = path.stat().st_size
     infos: dict[str, ChannelInfo] = {}
@@ -591,10 +588,6 @@ def load_line_data(path: str | Path) -> LineData:
     return LineData(signals, ev)
 
 
-def file_size_mb(path: str | Path) -> float:
-    return os.path.getsize(path) / 1e6
-
-
 # -------------------------------------------------------------------------------------------
 # bus side: record the bus, replay a recording onto it
 
@@ -635,8 +628,6 @@ def record_bus(
     without a model is recorded if its payload is a JSON object with a numeric ``t`` >= 0.
     ``exclude_health``: skip ``twin/<line>/service/...`` keys (health of the services).
     """
-    import threading
-
     from services.bus import Service
 
     svc = Service(service_name, config, install_signal_handlers=install_signal_handlers)
