@@ -167,9 +167,17 @@ class BlenderModel(BaseModel):
         return self._section
 
     @property
+    def flowing_holdup_kg(self) -> float:
+        """Holdup of one section in compartments with any flow (stagnant ones excluded)."""
+        used = np.zeros(self.n_compartments, dtype=bool)
+        used[self.flow_src] = True
+        used[self.flow_dst] = True
+        return float(np.asarray(self.holdup_kg)[used].sum())
+
+    @property
     def mean_residence_time_s(self) -> float:
-        """tau = n_sections x section holdup / throughput (s)."""
-        return self.n_sections * sum(self.holdup_kg) / (self.throughput_kg_h / 3600.0)
+        """tau = n_sections x flowing section holdup / throughput (s)."""
+        return self.n_sections * self.flowing_holdup_kg / (self.throughput_kg_h / 3600.0)
 
     @property
     def holdup_total_kg(self) -> float:
@@ -224,7 +232,7 @@ class BlenderModel(BaseModel):
 
         if self.rsd_ss is None or self.rsd_0 is None or self.k_b_per_s is None:
             raise ValueError("rsd_profile needs rsd_ss, rsd_0 and k_b_per_s in the model")
-        v_x = self.section_length_m * (self.throughput_kg_h / 3600.0) / sum(self.holdup_kg)
+        v_x = self.section_length_m * (self.throughput_kg_h / 3600.0) / self.flowing_holdup_kg
         return blender_rsd_profile(x_m, self.rsd_ss, self.rsd_0, self.k_b_per_s, v_x)
 
     # ------------------------------------------------------------------ files

@@ -9,6 +9,7 @@ from twin_core.compartment import (
     project_flows,
     rtd_moments,
     synthetic_blender_fields,
+    to_blender_model,
 )
 from twin_core.compartment.fields import GridFields
 from twin_core.compartment.flows import incidence, node_balance
@@ -156,6 +157,9 @@ def test_stagnant_pocket_is_reported_and_harmless():
     assert m.isolated_holdup_kg_ == pytest.approx(f.holdup_kg[pocket].sum(), rel=1e-9)
     sec = m.closed_section_
     tau = (sec.total_holdup - m.isolated_holdup_kg_) / sec.throughput
+    assert m.mean_residence_time_s_ == pytest.approx(tau, rel=1e-12)
+    bm = to_blender_model(m, n_sections=2)
+    assert bm.mean_residence_time_s == pytest.approx(2 * tau, rel=1e-9)
     t = np.linspace(0, 40 * tau, 6001)
     area, mean, _ = rtd_moments(t, sec.impulse_response(t))
     assert area == pytest.approx(1.0, abs=1e-6) and mean == pytest.approx(tau, rel=1e-5)

@@ -86,7 +86,8 @@ class CompartmentModel:
     periodic network), ``closed_section_`` (conserving closed-closed section),
     ``transit_section_`` (record-passage network), ``section_`` (the one chosen by
     ``section_form``), ``seed_flows_``, ``seed_imbalance_``,
-    ``throughput_kg_s_``, ``mean_residence_time_s_``, ``axial_velocity_m_s_`` (L Q / V),
+    ``throughput_kg_s_``, ``mean_residence_time_s_`` (V / Q of the flowing holdup),
+    ``axial_velocity_m_s_`` (L Q / V),
     ``section_length_m_``, ``flow_source_``, ``isolated_`` (compartments without any flow
     after projection: stagnant holdup that no tracer reaches) and ``isolated_holdup_kg_``.
     """
@@ -163,6 +164,7 @@ class CompartmentModel:
         return zones
 
     def fit(self, fields: GridFields) -> CompartmentModel:
+        """Zone, compartmentalise, project the flows and build the sections; returns self."""
         self._check(fields)
         ax = self.axial_axis
         self.mask_ = occupied_mask(fields, self.empty_fraction)
@@ -171,7 +173,6 @@ class CompartmentModel:
         self.zones_ = self.zone(fields)
         self.maps_ = {v: slice_components(z, axis=ax) for v, z in self.zones_.items()}
         if self.resolution == "cells":
-            labels = np.full(fields.shape, -1, dtype=np.int32)
             order = np.moveaxis(self.mask_, ax, 0)
             lab = np.full(order.shape, -1, dtype=np.int32)
             lab[order] = np.arange(int(order.sum()), dtype=np.int32)
@@ -221,7 +222,10 @@ class CompartmentModel:
         self.section_ = (
             self.transit_section_ if self.section_form == "transit" else self.closed_section_
         )
-        self.mean_residence_time_s_ = self.closed_section_.mean_residence_time
+        # tau = V / Q of the flowing holdup (stagnant, isolated compartments excluded)
+        self.mean_residence_time_s_ = (
+            self.closed_section_.total_holdup - self.isolated_holdup_kg_
+        ) / self.closed_section_.throughput
         self.axial_velocity_m_s_ = self.section_length_m_ / self.mean_residence_time_s_
         return self
 
