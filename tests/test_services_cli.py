@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from schemas.line import LineSpec
+from services.twin_demo import free_port
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
 
@@ -45,7 +46,7 @@ def config(tmp_path_factory) -> Path:
     tmp = tmp_path_factory.mktemp("cli")
     data = LineSpec.from_file(CONFIG).model_dump()
     data.update(
-        bus={"mode": "router", "listen": ["tcp/127.0.0.1:17851"], "connect": []},
+        bus={"mode": "router", "listen": [f"tcp/127.0.0.1:{free_port()}"], "connect": []},
         services=["feeder", "blender"],
         feeder_mode="simulate",
         state_dir=str(tmp / "state"),

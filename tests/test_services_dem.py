@@ -15,6 +15,7 @@ from schemas.line import LineSpec
 from schemas.messages import DemJobProgress, DemJobRequest, DemJobResult
 from services.bus import open_session
 from services.supervisor import Supervisor
+from services.twin_demo import free_port
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
 
@@ -24,7 +25,7 @@ def dem_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("dem")
     data = LineSpec.from_file(CONFIG).model_dump()
     data.update(
-        bus={"mode": "router", "listen": ["tcp/127.0.0.1:17861"], "connect": []},
+        bus={"mode": "router", "listen": [f"tcp/127.0.0.1:{free_port()}"], "connect": []},
         services=["dem"],
         state_dir=str(tmp),
     )

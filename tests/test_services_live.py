@@ -31,6 +31,7 @@ from services.bus import open_session
 from services.plant import Replayer, simulate_messages, write_recording
 from services.recording import read_recording
 from services.supervisor import Supervisor
+from services.twin_demo import free_port
 from twin_core.quality.lots import diversion_window
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
@@ -100,7 +101,7 @@ def wait_until(pred, timeout: float) -> bool:
 @pytest.fixture(scope="module")
 def run_a(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("live_a")
-    spec = make_spec(17831, tmp, ["feeder", "blender", "oos", "recorder"])
+    spec = make_spec(free_port(), tmp, ["feeder", "blender", "oos", "recorder"])
     run, msgs = simulate_messages(spec, 1800.0, seed=3, disturbances=DISTURBANCES)
     rec_path = tmp / "disturbed.mcap"
     write_recording(rec_path, msgs)
@@ -208,7 +209,7 @@ def test_no_message_dropped_and_recorded(run_a):
 @pytest.fixture(scope="module")
 def run_b(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("live_b")
-    spec = make_spec(17832, tmp, ["blender", "oos"])
+    spec = make_spec(free_port(), tmp, ["blender", "oos"])
     _, msgs = simulate_messages(spec, 1200.0, seed=4)
     path = tmp / "clean.mcap"
     write_recording(path, msgs)
