@@ -70,6 +70,7 @@ def main() -> None:
     ap.add_argument("--fields", default=None)
     ap.add_argument("--particles", type=int, default=40000)
     ap.add_argument("--transit-times", default=None, help="DEM transit times (.npz 'transit_s')")
+    ap.add_argument("--frames", default=None, help="DEM frame directory for the grid RSD")
     args = ap.parse_args()
     if args.fields:
         fields = load_fields(args.fields)
@@ -202,6 +203,25 @@ def main() -> None:
         f"plateau t > 2 tau: surrogate {r_dem[late].mean():.3f}, model+floor "
         f"{r_cm_s[late].mean():.3f}, seed flows (Eq. 2) {r_seed[late].mean():.3f}"
     )
+
+    if args.frames:
+        from twin_core.compartment.radial import grid_rsd_from_positions
+        from twin_core.dem.frames import FrameReader
+
+        reader = FrameReader(args.frames)
+        t_start = float(reader.meta.get("t_mix_start", 0.0))
+        print("\n## DEM grid RSD (10 x 6 x 6, tracer = type 1) vs cell network + floor")
+        print("| t - t_mix_start (s) | DEM | cell network + floor | compartments + floor |")
+        print("|---|---|---|---|")
+        for fr in reader:
+            tt = fr.t - t_start
+            if tt < 0:
+                continue
+            r = grid_rsd_from_positions(fr.positions, fr.types == 1, fields)
+            print(
+                f"| {tt:.2f} | {r:.3f} | {np.interp(tt, tm, r_cells_s):.3f} "
+                f"| {np.interp(tt, tm, r_cm_s):.3f} |"
+            )
 
     print("\n## 4. Eq. (10) and the whole blender")
     for name, y in (

@@ -177,3 +177,17 @@ def test_cell_network_grid_rsd_matches_walkers(small):
     assert r_walk[0] == pytest.approx(r_net[0], abs=0.05)
     assert np.abs(r_walk - r_net).max() < 0.06
     assert r_net[-1] < 0.5 * r_net[0]
+
+
+def test_grid_rsd_from_positions():
+    """Eq. (B.1) on a hand-made snapshot: two sampling cells with tracer fractions 1 and 0 give
+    RSD = std([1, 0], ddof=1) / 0.5 = sqrt(2); positions past the periodic end wrap."""
+    from twin_core.compartment.radial import grid_rsd_from_positions
+
+    f = synthetic_blender_fields(4, 4, 4).fields
+    lx = f.x_edges[-1]
+    pos = np.array([[0.25 * lx, 0, 0], [0.3 * lx + lx, 0, 0], [0.75 * lx, 0, 0], [0.8 * lx, 0, 0]])
+    r = grid_rsd_from_positions(pos, np.array([True, True, False, False]), f, bins=(2, 1, 1))
+    assert r == pytest.approx(np.sqrt(2.0), rel=1e-12)
+    with pytest.raises(ValueError, match="positions must have shape"):
+        grid_rsd_from_positions(pos[:, :2], np.ones(4, bool), f)

@@ -87,3 +87,34 @@ def grid_rsd_from_compartments(
             out_s.append(np.sqrt(var + samp) / mean)
     r = np.asarray(out)
     return r, (np.asarray(out_s) if particles_per_kg is not None else r)
+
+
+def grid_rsd_from_positions(
+    positions: np.ndarray,
+    is_tracer: np.ndarray,
+    fields: GridFields,
+    bins: tuple[int, int, int] = (10, 6, 6),
+    min_count: int = 1,
+) -> float:
+    """DEM grid RSD of one particle snapshot (seed Eq. B.1): tracer fraction per sampling cell
+    of a ``bins`` grid spanning the field box (periodic axes wrapped into it), RSD over cells
+    holding at least ``min_count`` particles."""
+    pos = np.asarray(positions, dtype=float)
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise ValueError(f"positions must have shape (n, 3), got {pos.shape}")
+    idx = []
+    for axis, nb in enumerate(bins):
+        lo, hi = fields.edges[axis][0], fields.edges[axis][-1]
+        x = pos[:, axis]
+        if fields.periodic[axis]:
+            x = lo + np.mod(x - lo, hi - lo)
+        idx.append(np.clip(((x - lo) / (hi - lo) * nb).astype(np.int64), 0, nb - 1))
+    flat = (idx[0] * bins[1] + idx[1]) * bins[2] + idx[2]
+    n = int(np.prod(bins))
+    tot = np.bincount(flat, minlength=n)
+    tr = np.bincount(flat, weights=np.asarray(is_tracer, dtype=float), minlength=n)
+    ok = tot >= min_count
+    if ok.sum() < 2:
+        return float("nan")
+    c = tr[ok] / tot[ok]
+    return float(np.std(c, ddof=1) / np.mean(c)) if c.mean() > 0 else float("nan")
