@@ -3,8 +3,9 @@
 :class:`Supervisor` hosts the zenoh router (``LineSpec.bus``, ``mode: router``) in its own
 process, starts each configured service as a separate interpreter
 (``python -m services.runner NAME``; no fork of a process with zenoh open), watches the
-processes and their liveliness tokens (``twin/<line>/service/<name>/alive``), restarts a service
-that exits with exponential backoff (``backoff_s`` doubling up to ``max_backoff_s``, reset after
+processes and their liveliness tokens (``twin/<line>/service/<name>/alive``), kills a service
+whose token has been gone for ``liveliness_timeout_s`` while its process runs (hung, or cut off
+from the router), restarts a service that exits with exponential backoff (``backoff_s`` doubling up to ``max_backoff_s``, reset after
 ``stable_s`` of uptime), and on :meth:`stop` (SIGINT/SIGTERM in ``twin up``) sends SIGTERM to all,
 waits ``stop_timeout_s``, kills what remains and closes the router.
 
@@ -45,6 +46,8 @@ class Child:
     name: str
     proc: subprocess.Popen | None = None
     started_at: float = 0.0
+    seen_alive: bool = False
+    lost_since: float | None = None
     restarts: int = 0
     backoff_s: float = 0.0
     next_start: float = 0.0
@@ -63,6 +66,7 @@ class Supervisor:
         backoff_s: float = 0.5,
         max_backoff_s: float = 10.0,
         stable_s: float = 30.0,
+        liveliness_timeout_s: float = 15.0,
         stop_timeout_s: float = 5.0,
         log_level: str = "INFO",
     ) -> None:
@@ -77,6 +81,7 @@ class Supervisor:
         self.backoff_s = backoff_s
         self.max_backoff_s = max_backoff_s
         self.stable_s = stable_s
+        self.liveliness_timeout_s = liveliness_timeout_s
         self.stop_timeout_s = stop_timeout_s
         self.log_level = log_level
         self.children = {n: Child(n) for n in names}
@@ -163,10 +168,38 @@ class Supervisor:
             )
         )
 
+    def _check_liveliness(self, child: Child, now: float) -> None:
+        """Kill a running service whose liveliness token has been gone for
+        ``liveliness_timeout_s`` (hung, or cut off from the router); it is then restarted."""
+        p = child.proc
+        if p is None or p.poll() is not None:
+            return
+        with self._lock:
+            alive = child.name in self.alive
+        if alive:
+            child.seen_alive = True
+            child.lost_since = None
+            return
+        if not child.seen_alive:
+            return  # still starting
+        if child.lost_since is None:
+            child.lost_since = now
+        elif now - child.lost_since >= self.liveliness_timeout_s:
+            log.warning(
+                "%s (pid %d) lost its liveliness token %.1f s ago: killing it",
+                child.name,
+                p.pid,
+                now - child.lost_since,
+            )
+            p.kill()
+            child.lost_since = None
+
     def _watch(self) -> None:
         last_health = 0.0
         while not self._stop.wait(0.1):
             now = time.monotonic()
+            for child in self.children.values():
+                self._check_liveliness(child, now)
             if now - last_health >= 1.0:
                 last_health = now
                 try:
@@ -187,6 +220,7 @@ class Supervisor:
                     )
                     child.next_start = now + child.backoff_s
                     child.proc = None
+                    child.seen_alive = False
                     log.warning(
                         "%s exited with %s after %.1f s; restart in %.1f s",
                         child.name,
