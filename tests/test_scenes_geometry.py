@@ -60,10 +60,10 @@ def test_blender_section_dimensions(tmp_path):
         mlo, mhi = m.bounds()
         assert np.all(mlo >= lo - 1e-9) and np.all(mhi <= hi + 1e-9), m.name
     trough = geo.static[0]
-    # side-wall area: 2 walls (H - R) L + half-cylinder polygon perimeter R * n sin(pi/n) * ... * L
+    # area: (half-cylinder polygon perimeter + 2 walls (H - R) + lid W) L
     n_half = 24
     arc = 2 * n_half * 0.04 * np.sin(np.pi / (2 * n_half))
-    assert trough.area() == pytest.approx((arc + 2 * 0.04) * 0.04, rel=1e-9)
+    assert trough.area() == pytest.approx((arc + 2 * 0.04 + 0.08) * 0.04, rel=1e-9)
     path = write_stl(
         tmp_path / "rotor.stl", geo.rotating[0][0].vertices, geo.rotating[0][0].triangles
     )

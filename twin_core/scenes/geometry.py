@@ -298,7 +298,7 @@ def blender_section(
 
     Domain x in [0, length] (periodic), y in [-width/2, width/2], z in [0, height]; the U-shaped
     trough is a half cylinder of radius width/2 about the axis (y=0, z=width/2) with vertical
-    walls above it, open at the x ends. The shaft lies on the axis; ``n_stations`` blade
+    walls above it and a lid at z = height (the closed housing), open at the x ends. The shaft lies on the axis; ``n_stations`` blade
     stations are evenly spaced along x, each with ``blades_per_station`` paddles, and
     successive stations turned by 180/blades_per_station degrees (alternating configuration).
     Blades extend from the shaft to ``width/2 - tip_clearance``.
@@ -312,7 +312,13 @@ def blender_section(
     prof = np.vstack(
         [[[-R, height]], _arc(0.0, zc, R, np.pi, 2 * np.pi, n_seg // 2), [[R, height]]]
     )
-    trough = extrude_profile(prof, 0.0, length, name="trough")
+    trough = merge(
+        [
+            extrude_profile(prof, 0.0, length),
+            rectangle([0.0, -R, height], [length, 0.0, 0.0], [0.0, width, 0.0]),
+        ],
+        name="trough",
+    )
     axis_pt = np.array([0.0, 0.0, zc])
     axis = np.array([1.0, 0.0, 0.0])
     shaft = cylinder_mesh(
