@@ -102,3 +102,30 @@ def test_cli_bad_input(tmp_path, caplog):
     np.savez(bad, x_edges=np.arange(3.0))
     assert main(["compartment", "build", str(bad), "--out", str(tmp_path / "m.json")]) == 2
     assert "missing key" in caplog.text
+
+
+def test_cli_simulate_bad_input(tmp_path, caplog):
+    assert main(["compartment", "simulate", str(tmp_path / "none.json")]) == 2
+    assert "does not exist" in caplog.text
+    fields, model = tmp_path / "f.npz", tmp_path / "m.json"
+    assert main(["compartment", "synthetic", str(fields), "--shape", "4", "5", "5"]) == 0
+    assert (
+        main(
+            [
+                "compartment",
+                "build",
+                str(fields),
+                "--out",
+                str(model),
+                "--surrogate",
+                "0",
+                "--rsd-source",
+                "compartments",
+            ]
+        )
+        == 0
+    )
+    assert main(["compartment", "simulate", str(model), "--step-at", "5"]) == 2
+    assert "--step-at needs --step-to" in caplog.text
+    assert main(["compartment", "simulate", str(model), "--dt", "0"]) == 2
+    assert main(["compartment"]) == 2
