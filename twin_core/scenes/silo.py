@@ -90,34 +90,39 @@ def bulk_density(
     return phi * density, float(top)
 
 
-def _recycle(sim: Any, cfg: SiloScene, rng: np.random.Generator) -> int:
+def _recycle(sim: Any, cfg: SiloScene, rng: np.random.Generator, z_base: float) -> int:
+    """Move particles that fell 3 d below the orifice back on top: new spheres on lattice
+    layers from ``z_base`` up, on sites at least 2.1 r from every particle present."""
+    from scipy.spatial import cKDTree
+
     r = cfg.radius
-    z = sim.pos[:, 2]
-    out = z < -3 * 2 * r
+    out = sim.pos[:, 2] < -3 * 2 * r
     k = int(out.sum())
     if k == 0:
         return 0
     sim.remove_particles(out)
     pos = sim.pos
-    top = float(pos[:, 2].max()) if len(pos) else 0.0
+    tree = cKDTree(pos) if len(pos) else None
     a = 2.2 * r
     Rin = cfg.silo_radius - 1.1 * r
     g = np.arange(-Rin, Rin + 1e-12, a)
     xx, yy = np.meshgrid(g, g, indexing="ij")
     sites = np.c_[xx.ravel(), yy.ravel()]
     sites = sites[np.hypot(sites[:, 0], sites[:, 1]) < Rin]
-    new = []
-    layer = 0
-    while len(new) < k:
-        zl = top + 2.5 * r + layer * a
-        if zl > cfg.silo_height - r:
-            break
-        take = rng.permutation(len(sites))[: k - len(new)]
-        new.extend(np.c_[sites[take], np.full(len(take), zl)])
-        layer += 1
-    if new:
-        sim.add_particles(np.asarray(new), r, 0, 1, vel=(0.0, 0.0, -0.2))
-    return len(new)
+    new: list[np.ndarray] = []
+    zl = z_base
+    while sum(len(b) for b in new) < k and zl < cfg.silo_height - r:
+        layer = np.c_[sites, np.full(len(sites), zl)]
+        if tree is not None:
+            d, _ = tree.query(layer)
+            layer = layer[d > 2.1 * r]
+        need = k - sum(len(b) for b in new)
+        new.append(layer[rng.permutation(len(layer))[:need]])
+        zl += a
+    placed = np.vstack(new) if new else np.zeros((0, 3))
+    if len(placed):
+        sim.add_particles(placed, r, 0, 1, vel=(0.0, 0.0, -0.2))
+    return len(placed)
 
 
 def run(cfg: SiloScene, run_dir: Path, *, resume: bool = False, progress: bool = True) -> dict:
@@ -155,7 +160,10 @@ def run(cfg: SiloScene, run_dir: Path, *, resume: bool = False, progress: bool =
                 s.pos, s.radius, cfg.material.density, cfg.silo_radius
             )
         if cfg.recycle and s.t > cfg.settle_s:
-            st.flags["recycled"] = st.flags.get("recycled", 0) + _recycle(s, cfg, st.flags["rng"])
+            z_base = st.flags["bed_height"] + 2 * cfg.radius
+            st.flags["recycled"] = st.flags.get("recycled", 0) + _recycle(
+                s, cfg, st.flags["rng"], z_base
+            )
 
     t_end = cfg.settle_s + cfg.discharge_s
     common.run_segments(
