@@ -132,7 +132,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     c = csub.add_parser("campaign", help="run a design's simulations in parallel (resumable)")
     c.add_argument("design", help="design CSV (physical units), e.g. from `twin calibrate design`")
-    c.add_argument("--runner", default="surrogate", help="'surrogate' or module:function")
+    c.add_argument(
+        "--runner",
+        default="surrogate",
+        help="'surrogate', 'drawdown' (DEM drawdown test, seed 3.2.2) or module:function",
+    )
+    c.add_argument("--scene", help="drawdown runner: DrawdownScene YAML/JSON (default: seed scene)")
+    c.add_argument("--run-root", default="drawdown_runs", help="drawdown runner: run directories")
     c.add_argument("--results", required=True, help="results CSV (resumed if it exists)")
     c.add_argument("--scheduler", help="Dask scheduler address (default: local process pool)")
     c.add_argument("--workers", type=int, default=None)
@@ -261,6 +267,7 @@ def _fit(args: argparse.Namespace) -> int:
         for c in table.columns
         if c not in factors
         and c not in ("run", "seed", "elapsed_s", "R2")
+        and not c.endswith("_used")
         and pd.api.types.is_numeric_dtype(table[c])
     ]
     if not responses:
@@ -379,11 +386,21 @@ def _solve(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------- campaign
-def _runner(spec: str):
+def _runner(spec: str, scene: str | None = None, run_root: str = "drawdown_runs"):
     if spec == "surrogate":
         from twin_core.calibration.campaign import surrogate_drawdown
 
         return surrogate_drawdown
+    if spec == "drawdown":
+        from twin_core.calibration.scenes import DrawdownRunner
+
+        base = _read_mapping(scene) if scene else None
+        if base is not None:
+            base.pop("scene", None)
+        try:
+            return DrawdownRunner(base, run_root=run_root)
+        except ValueError as exc:
+            raise SystemExit(f"invalid drawdown scene: {exc}") from None
     if ":" not in spec:
         raise SystemExit(f"--runner must be 'surrogate' or module:function, got {spec!r}")
     mod, fn = spec.split(":", 1)
@@ -402,7 +419,7 @@ def _campaign(args: argparse.Namespace) -> int:
     try:
         out = run_campaign(
             design,
-            _runner(args.runner),
+            _runner(args.runner, args.scene, args.run_root),
             args.results,
             seed=args.seed,
             scheduler=args.scheduler,
