@@ -12,6 +12,7 @@ machine hits both alike. Needs the ``liggghts`` executable (Debian package ``lig
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import shutil
 import subprocess
@@ -33,12 +34,14 @@ def write_data(path: Path, pos: np.ndarray, vel: np.ndarray, lx: float) -> None:
     """LIGGGHTS data file (atom_style granular: id type diameter density x y z)."""
     n = pos.shape[0]
     lines = ["LIGGGHTS data file (dem_vs_liggghts.py)", "", f"{n} atoms", "1 atom types", "",
-             f"0 {lx!r} xlo xhi", "0 0.08 ylo yhi", "0 0.08 zlo zhi", "", "Atoms", ""]  # fmt: skip
+             f"0 {float(lx)!r} xlo xhi", "0 0.08 ylo yhi", "0 0.08 zlo zhi", "", "Atoms", ""]  # fmt: skip
     for i, p in enumerate(pos):
-        lines.append(f"{i + 1} 1 {2 * bench.R!r} 1500.0 {p[0]!r} {p[1]!r} {p[2]!r}")
+        x, y, z = (float(c) for c in p)
+        lines.append(f"{i + 1} 1 {2 * bench.R!r} 1500.0 {x!r} {y!r} {z!r}")
     lines += ["", "Velocities", ""]
     for i, v in enumerate(vel):
-        lines.append(f"{i + 1} {v[0]!r} {v[1]!r} {v[2]!r} 0 0 0")
+        vx, vy, vz = (float(c) for c in v)
+        lines.append(f"{i + 1} {vx!r} {vy!r} {vz!r} 0 0 0")
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -53,7 +56,9 @@ def run_liggghts(exe: str, n: int, case: str, settle: int, steps: int, skin: flo
                "-var", "datafile", str(data), "-var", "drum", "1" if case == "drum" else "0",
                "-var", "rpm", "30", "-var", "skin", repr(skin), "-var", "nsettle", str(settle),
                "-var", "nrun", str(steps)]  # fmt: skip
-        out = subprocess.run(cmd, capture_output=True, text=True, cwd=td, check=False)
+        env = dict(os.environ, OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
+                   OMPI_MCA_mpi_yield_when_idle="1")  # fmt: skip
+        out = subprocess.run(cmd, capture_output=True, text=True, cwd=td, check=False, env=env)
     loops = re.findall(r"Loop time of ([0-9.eE+-]+) on (\d+) procs for (\d+) steps with (\d+) atoms",
                        out.stdout)  # fmt: skip
     if len(loops) < 2:

@@ -50,8 +50,12 @@ _TWO_THIRDS = 2.0 / 3.0
 # --------------------------------------------------------------------------------------------
 @njit(cache=True, inline="always")
 def _min_image(d: float, length: float, periodic: bool) -> float:
+    """Minimum image of a separation |d| < 1.5 L along a periodic axis."""
     if periodic:
-        return d - length * math.floor(d / length + 0.5)
+        if d > 0.5 * length:
+            return d - length
+        if d < -0.5 * length:
+            return d + length
     return d
 
 
@@ -425,9 +429,12 @@ def gather_pass(
     n, P, F, IA, nown, pf, nrev, rev_o, rev_k,
     planes, cyls, whist,
     ntri, tri_nb, thist, tri_tmp, tri_x, tri_mesh, mesh_par,
-    pt, dom, per, grav, dt, t,
+    pt, dom, per, grav, dt, t, predict_next, XB, rm, sinks, disp2,
 ):  # fmt: skip
     """Pass 2: total force/torque on each particle (pairs, walls, meshes, gravity); half kick.
+
+    With ``predict_next`` it also does the work of :func:`predict` for the next step (fused to save
+    a parallel region per step).
 
     Mesh contacts: the closest point of every candidate triangle is found with its feature (face,
     edge, vertex). Face contacts always count; an edge/vertex contact is dropped when its contact
@@ -647,6 +654,8 @@ def gather_pass(
         P[i, 6] += tx * inv_i * hdt
         P[i, 7] += ty * inv_i * hdt
         P[i, 8] += tz * inv_i * hdt
+        if predict_next:
+            _predict_one(i, P, F, XB, rm, dom, per, sinks, dt, disp2)
 
 
 @njit(cache=True, parallel=True)
@@ -668,46 +677,51 @@ def kick_drift(n, P, F, dom, per, dt):
             P[i, a] = x
 
 
+@njit(cache=True)
+def _predict_one(i, P, F, XB, rm, dom, per, sinks, dt, disp2):
+    """Squared displacement (minimum image) since the last build that the next drift gives
+    particle i, and its removal code if that drift takes it out of the domain (2) or into sink s
+    (3 + s)."""
+    hdt = 0.5 * dt
+    invm = P[i, 11]
+    d2 = 0.0
+    lost = False
+    xn0 = 0.0
+    xn1 = 0.0
+    xn2 = 0.0
+    for a in range(3):
+        v = P[i, 3 + a] + F[i, a] * invm * hdt
+        xn = P[i, a] + v * dt
+        if a == 0:
+            xn0 = xn
+        elif a == 1:
+            xn1 = xn
+        else:
+            xn2 = xn
+        d = _min_image(xn - XB[i, a], dom[6 + a], per[a] != 0)
+        d2 += d * d
+        if per[a] == 0 and (xn < dom[a] or xn > dom[3 + a]):
+            lost = True
+    disp2[i] = d2
+    if rm[i] == 0:
+        if lost:
+            rm[i] = 2
+        else:
+            for s in range(sinks.shape[0]):
+                if (
+                    sinks[s, 0] <= xn0 <= sinks[s, 3]
+                    and sinks[s, 1] <= xn1 <= sinks[s, 4]
+                    and sinks[s, 2] <= xn2 <= sinks[s, 5]
+                ):
+                    rm[i] = 3 + s
+                    break
+
+
 @njit(cache=True, parallel=True)
 def predict(n, P, F, XB, rm, dom, per, sinks, dt, disp2):
-    """Displacement (squared, minimum image) since the last build that the next drift will give,
-    and the removal code of particles that the drift takes out of the domain (2) or into sink s
-    (3 + s). Returns nothing; writes ``disp2`` and ``rm``."""
-    hdt = 0.5 * dt
-    ns = sinks.shape[0]
+    """:func:`_predict_one` for every particle."""
     for i in prange(n):
-        invm = P[i, 11]
-        d2 = 0.0
-        lost = False
-        xn0 = 0.0
-        xn1 = 0.0
-        xn2 = 0.0
-        for a in range(3):
-            v = P[i, 3 + a] + F[i, a] * invm * hdt
-            xn = P[i, a] + v * dt
-            if a == 0:
-                xn0 = xn
-            elif a == 1:
-                xn1 = xn
-            else:
-                xn2 = xn
-            d = _min_image(xn - XB[i, a], dom[6 + a], per[a] != 0)
-            d2 += d * d
-            if per[a] == 0 and (xn < dom[a] or xn > dom[3 + a]):
-                lost = True
-        disp2[i] = d2
-        if rm[i] == 0:
-            if lost:
-                rm[i] = 2
-            else:
-                for s in range(ns):
-                    if (
-                        sinks[s, 0] <= xn0 <= sinks[s, 3]
-                        and sinks[s, 1] <= xn1 <= sinks[s, 4]
-                        and sinks[s, 2] <= xn2 <= sinks[s, 5]
-                    ):
-                        rm[i] = 3 + s
-                        break
+        _predict_one(i, P, F, XB, rm, dom, per, sinks, dt, disp2)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1043,9 +1057,9 @@ def advance(
     list must be enlarged (``counters[2]`` holds the needed size) before calling again.
     """
     half_skin2 = (0.5 * skin) ** 2
+    predict(n, P, F, XB, rm, dom, per, sinks, dt, disp2)
     for s in range(nsteps):
         t_new = (step0 + s + 1) * dt
-        predict(n, P, F, XB, rm, dom, per, sinks, dt, disp2)
         need = counters[0] != 0
         dmax2 = 0.0
         for i in range(n):
@@ -1083,7 +1097,7 @@ def advance(
             n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k,
             planes, cyls, whist,
             ntri_b[c], tri_nb_b[c], thist_b[c], tri_tmp, tri_x, tri_mesh, mesh_par,
-            pt, dom, per, grav, dt, t_new,
+            pt, dom, per, grav, dt, t_new, True, XB, rm, sinks, disp2,
         )  # fmt: skip
     return 0, nsteps, n
 
@@ -1108,7 +1122,8 @@ def compute_forces(
         n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k,
         planes, cyls, whist,
         ntri_b[c], tri_nb_b[c], thist_b[c], tri_tmp, tri_x, tri_mesh, mesh_par,
-        pt, dom, per, grav, dt, t,
+        pt, dom, per, grav, dt, t, False, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 6)),
+        np.zeros(0),
     )  # fmt: skip
     hist_b[c][:] = h
     thist_b[c][:] = th
