@@ -282,6 +282,8 @@ class RefillSurge(Effect):
     delivered = reported * (1 + a * s(t)),  s = 1 while refilling,
     s = exp(-(t - t_end) / tau) after the refill ends (densified powder in the screw; the
     controller in volumetric mode does not see it: Engisch & Muzzio, J. Pharm. Innov. 2014).
+    tau is bounded to 180 s: a refill disturbance fades within minutes; a slower one would
+    be a drift, not a surge (and would mimic the drift effects).
     """
 
     name = "refill_surge"
@@ -291,7 +293,7 @@ class RefillSurge(Effect):
         ParamSpec(
             "amplitude", 0.0, -0.5, 1.5, "1", "relative flow excess while refilling", (0.1, 0.3)
         ),
-        ParamSpec("tau_s", 30.0, 1.0, 600.0, "s", "decay time after the refill", (10.0, 60.0)),
+        ParamSpec("tau_s", 30.0, 1.0, 180.0, "s", "decay time after the refill", (10.0, 60.0)),
     )
 
     def apply_flow(
