@@ -250,3 +250,17 @@ def test_bad_input_raises_value_error():
         sim.add_particles([[0.5, 0.5, 0.5]], R)
     with pytest.raises(ValueError, match="material_id"):
         sim.add_plane((0, 0, 0), (0, 0, 1), material_id=3)
+
+
+def test_particle_wall_pair_parameters_apply():
+    """Seed Table 3.1 separates particle-particle and particle-wall coefficients: a wall of a second
+    material uses the (particle, wall) pair entry (here restitution 0.2, Tsuji damping corrected for
+    Hertz), not the particle's own."""
+    steel = Material(7800.0, 7.9e10, 0.3, friction=0.3, restitution=0.9)
+    sim = Simulation((0, 0, 0), (0.01, 0.01, 0.01), gravity=(0, 0, 0),
+                     materials=[_mat(e=0.7, mu=0.0), steel], dt_fraction=0.02)  # fmt: skip
+    sim.set_pair(0, 1, friction=0.0, rolling_friction=0.0, restitution=0.2)
+    sim.add_plane((0, 0, 0), (0, 0, 1), material_id=1)
+    sim.add_particles([[0.005, 0.005, 0.0015]], R, vel=[[0, 0, -0.5]])
+    sim.run(3e-3)
+    assert sim.vel[0, 2] / 0.5 == pytest.approx(0.2, rel=0.03)

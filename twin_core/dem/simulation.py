@@ -599,6 +599,15 @@ class Simulation:
         self._removed = np.vstack([self._removed, np.zeros((1, 2))])
         return self._sinks.shape[0] - 1
 
+    def set_pair(
+        self, a: int, b: int, friction: float, rolling_friction: float, restitution: float
+    ) -> None:
+        """Set the coefficients of material pair (a, b) (particle-particle or particle-wall) and
+        refresh the contact tables; takes effect from the next step."""
+        self.materials.set_pair(a, b, friction, rolling_friction, restitution)
+        self._pt = self.materials.tables()
+        self._forces_stale = True
+
     def _check_mat(self, material_id: int) -> None:
         if not 0 <= material_id < self.materials.n:
             raise ValueError(f"material_id must be in [0, {self.materials.n}), got {material_id}")
