@@ -210,9 +210,11 @@ def run_segments(
 
     def cb(s: Any) -> None:
         on_sample(s, state)
-        if frames is not None and frame_interval_s and s.t >= state.next_frame_t - 1e-9:
-            frames.append(s)
-            state.next_frame_t = s.t + frame_interval_s
+        if frames is not None and frame_interval_s:
+            if s.t >= state.next_frame_t - 0.5 * sensor_interval_s:
+                frames.append(s)
+                while state.next_frame_t <= s.t + 0.5 * sensor_interval_s:
+                    state.next_frame_t += frame_interval_s
 
     if sim.t < 1e-12 and not state.flags.get("sampled0"):
         cb(sim)

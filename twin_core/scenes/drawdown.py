@@ -60,7 +60,7 @@ def responses(state: Any, geo: SceneGeometry, flow: PlaneFlowSensor, cfg: Drawdo
     lower = s.pos[:, 2] < zs
     t_end = cfg.settle_s + cfg.run_s
     tb, fr = flow.flow(cfg.flow_bin_s, 0.0, t_end)
-    bin_w = 2 * 2 * r
+    bin_w = 2 * r
     wall = 2 * r
     # upper heap: from the opening edges to the walls
     xl, hl = surface_profile(s.pos, s.radii, wall, a0, bin_w, zs)
