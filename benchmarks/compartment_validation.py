@@ -42,19 +42,21 @@ from twin_core.compartment import (  # noqa: E402
     synthetic_blender_fields,
     to_blender_model,
 )
-from twin_core.compartment.flows import cell_flows_from_crossings  # noqa: E402
+from twin_core.compartment.fields import mirror_axis  # noqa: E402
 from twin_core.compartment.network import chain_periodic  # noqa: E402
 from twin_core.compartment.radial import (  # noqa: E402
+    flowing,
     grid_rsd_from_compartments,
+    grid_rsd_sampled,
     section_concentrations,
 )
 from twin_core.compartment.surrogate import (  # noqa: E402
-    cell_network,
     coarse_index,
     grid_rsd_from_particles,
     walk_snapshots,
     walk_transit_times,
 )
+from twin_core.compartment.validation import window_censored  # noqa: E402
 
 
 def row(name: str, r: dict) -> str:
@@ -71,6 +73,7 @@ def main() -> None:
     ap.add_argument("--particles", type=int, default=40000)
     ap.add_argument("--transit-times", default=None, help="DEM transit times (.npz 'transit_s')")
     ap.add_argument("--frames", default=None, help="DEM frame directory for the grid RSD")
+    ap.add_argument("--transit-window", type=float, default=None, help="DEM recording window (s)")
     args = ap.parse_args()
     if args.fields:
         fields = load_fields(args.fields)
@@ -81,6 +84,9 @@ def main() -> None:
         noisy = synthetic_blender_fields(10, 20, 20, counts="poisson", seed=1).fields
         label = "synthetic 10 x 20 x 20 (expected counts)"
     base = CompartmentModel().fit(fields)
+    if base.mirrored_:  # net flow towards -x: work in the model's (mirrored) orientation
+        fields = mirror_axis(fields, 0)
+        print("fields mirrored along x (net axial flow towards -x)")
     if args.transit_times:
         with np.load(args.transit_times) as z:
             dem = np.asarray(z["transit_s"], dtype=float)
@@ -89,17 +95,19 @@ def main() -> None:
         print("| model | mean | ref | err | var | ref | err | KS | W1/mean |")
         print("|---|---|---|---|---|---|---|---|---|")
         for name, sec in (("transit form", base.section_), ("closed-closed", base.closed_section_)):
-            print(
-                row(
-                    f"{name} vs {dem.size} DEM transits",
-                    compare_rtd(td, sec.impulse_response(td), samples=dem),
-                )
-            )
+            e = sec.impulse_response(td)
+            print(row(f"{name} vs {dem.size} DEM transits", compare_rtd(td, e, samples=dem)))
+            if args.transit_window:
+                ew = window_censored(td, e, args.transit_window)
+                name_w = f"{name}, censored to the {args.transit_window} s window"
+                print(row(name_w, compare_rtd(td, ew, samples=dem)))
     if not fields.has_crossings:
         print(f"fields: {label}: no crossing counts, so no particle-walk surrogate; model:")
         print(base.summary())
         return
-    cells, _ = cell_network(fields, cell_flows_from_crossings(fields), base.mask_)
+    # every cell its own compartment, flows made conserving (raw counts of a short DEM run
+    # leave cells that are entered but never left)
+    cells = CompartmentModel(resolution="cells", axial_direction="+").fit(fields).periodic_
     tau = base.mean_residence_time_s_
     t = np.linspace(0.0, 30.0 * tau, 6001)
     t0 = time.perf_counter()
@@ -173,13 +181,29 @@ def main() -> None:
     c0 = split_initial(fields, base.labels_, axis=1)
     c = section_concentrations(base.periodic_, c0, tm)
     _, r_cm_s = grid_rsd_from_compartments(
-        c, base.labels_, fields.holdup_kg, coarse, 360, particles_per_kg=ppk
+        c,
+        base.labels_,
+        fields.holdup_kg,
+        coarse,
+        360,
+        particles_per_kg=ppk,
+        active=flowing(base.periodic_),
     )
     lab_cells = np.full(fields.shape, -1, dtype=np.int64)
     lab_cells[base.mask_] = np.arange(cells.n)
     c_cells = section_concentrations(cells, (cells.centroid[:, 1] < y_mid).astype(float), tm)
     _, r_cells_s = grid_rsd_from_compartments(
-        c_cells, lab_cells, fields.holdup_kg, coarse, 360, particles_per_kg=ppk
+        c_cells,
+        lab_cells,
+        fields.holdup_kg,
+        coarse,
+        360,
+        particles_per_kg=ppk,
+        active=flowing(cells),
+    )
+    occ_cells = fields.occupancy
+    r_cells_mc = grid_rsd_sampled(
+        c_cells, lab_cells, occ_cells, coarse, 360, seed=7, active=flowing(cells)
     )
     seed = base.seed_flows_
     seed_net = CompartmentNetwork(base.holdup_kg_, seed.src, seed.dst, seed.rate)
@@ -188,12 +212,13 @@ def main() -> None:
     print(f"{n_part} walkers; 10 x 6 x 6 sampling cells; '+ floor': binomial sampling variance")
     print(
         "| t (s) | surrogate grid RSD | model grid RSD + floor | cell network grid RSD + floor "
-        "| model Eq. 2 | seed flows Eq. 2 |"
+        "| cell network sampled | model Eq. 2 | seed flows Eq. 2 |"
     )
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
     for k in range(0, tm.size, 6):
         print(
             f"| {tm[k]:.2f} | {r_dem[k]:.3f} | {r_cm_s[k]:.3f} | {r_cells_s[k]:.3f} "
+            f"| {r_cells_mc[k]:.3f} "
             f"| {r_comp[k]:.3f} | {r_seed[k]:.3f} |"
         )
     late = tm > 2 * tau
@@ -205,23 +230,41 @@ def main() -> None:
     )
 
     if args.frames:
-        from twin_core.compartment.radial import grid_rsd_from_positions
+        from twin_core.compartment.radial import grid_rsd_from_positions, initial_from_particles
         from twin_core.dem.frames import FrameReader
 
         reader = FrameReader(args.frames)
-        t_start = float(reader.meta.get("t_mix_start", 0.0))
-        print("\n## DEM grid RSD (10 x 6 x 6, tracer = type 1) vs cell network + floor")
-        print("| t - t_mix_start (s) | DEM | cell network + floor | compartments + floor |")
-        print("|---|---|---|---|")
-        for fr in reader:
-            tt = fr.t - t_start
-            if tt < 0:
-                continue
+        frames = list(reader)
+        t_avg0 = frames[-1].t - float(np.load(args.fields)["duration_s"])
+        k0 = int(np.argmin([abs(fr.t - t_avg0) for fr in frames]))
+        f0 = frames[k0]
+        pos0 = f0.positions.copy()
+        if base.mirrored_:
+            pos0[:, 0] = fields.x_edges[0] + fields.x_edges[-1] - pos0[:, 0]
+        c0_dem = initial_from_particles(pos0, f0.types == 1, fields, lab_cells)
+        tf = np.array([fr.t - f0.t for fr in frames[k0:]])
+        tu = np.linspace(0.0, max(tf[-1], 1e-3), 41)
+        c_dem_model = section_concentrations(cells, c0_dem, tu)
+        r_model = np.interp(
+            tf,
+            tu,
+            grid_rsd_sampled(
+                c_dem_model, lab_cells, fields.occupancy, coarse, 360, seed=9, active=flowing(cells)
+            ),
+        )
+        print(
+            f"\n## DEM grid RSD (10 x 6 x 6, tracer = type 1) from the frame at t = {f0.t:.2f} s "
+            "(start of the field averaging); cell network started from that frame"
+        )
+        print("| t - t0 (s) | DEM | cell network, sampled like the DEM |")
+        print("|---|---|---|")
+        r_d = []
+        for fr, ti, rm in zip(frames[k0:], tf, r_model):
             r = grid_rsd_from_positions(fr.positions, fr.types == 1, fields)
-            print(
-                f"| {tt:.2f} | {r:.3f} | {np.interp(tt, tm, r_cells_s):.3f} "
-                f"| {np.interp(tt, tm, r_cm_s):.3f} |"
-            )
+            r_d.append(r)
+            print(f"| {ti:.2f} | {r:.3f} | {rm:.3f} |")
+        r_d = np.asarray(r_d)
+        print(f"RMS difference {np.sqrt(np.mean((r_d - r_model) ** 2)):.3f}")
 
     print("\n## 4. Eq. (10) and the whole blender")
     for name, y in (
@@ -244,9 +287,11 @@ def main() -> None:
         f"{bm.mean_residence_time_s:.3f}), var {vb:.2f} s^2; 8 x surrogate section var = "
         f"{8 * v_ref:.2f} s^2; mean axial velocity v_x = {base.axial_velocity_m_s_:.4f} m/s"
     )
-    small = synthetic_blender_fields(6, 10, 10).fields if not args.fields else fields
+    if args.fields:
+        return  # the face-coupled cell-level reference is affordable on the synthetic field only
+    small = synthetic_blender_fields(6, 10, 10).fields
     ms = CompartmentModel().fit(small)
-    cs, _ = cell_network(small, cell_flows_from_crossings(small), ms.mask_)
+    cs = CompartmentModel(resolution="cells").fit(small).periodic_
     n = 8
     tb = np.linspace(0.0, 4.0 * n * ms.mean_residence_time_s_, 2001)
     t0 = time.perf_counter()

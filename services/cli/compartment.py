@@ -74,6 +74,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="DEM particle transit times of the section (.npy, s) for the RTD comparison",
     )
     b.add_argument(
+        "--transit-window",
+        type=float,
+        default=None,
+        help="recording window (s) of the DEM transit times: the model RTD is censored to the "
+        "transits that fit in it before the comparison",
+    )
+    b.add_argument(
         "--surrogate",
         type=int,
         default=20000,
@@ -131,6 +138,7 @@ def cmd_build(args: argparse.Namespace) -> int:
         split_initial,
         to_blender_model,
     )
+    from twin_core.compartment.fields import mirror_axis
 
     try:
         fields = load_fields(args.fields)
@@ -148,6 +156,16 @@ def cmd_build(args: argparse.Namespace) -> int:
             n_upstream=args.n_upstream,
         ).fit(fields)
         t_build = time.perf_counter() - t0
+        if model.mirrored_:  # net flow towards -x: work in the model's orientation
+            fields = mirror_axis(fields, model.axial_axis)
+        # every cell its own compartment (same orientation): radial mixing and the surrogate
+        cells = None
+        if args.rsd_source == "cells" or (
+            args.transit_times is None and fields.has_crossings and args.surrogate > 0
+        ):
+            cells = CompartmentModel(
+                resolution="cells", flow_source=model.flow_source_, axial_direction="+"
+            ).fit(fields)
         # radial mixing of the closed section: RSD(t) and the Eq. (10) parameters
         c0 = split_initial(fields, model.labels_, axis=args.split_axis)
         t_mix = _mixing_grid(model)
@@ -155,7 +173,7 @@ def cmd_build(args: argparse.Namespace) -> int:
         fit_comp = fit_rsd_decay(t_mix, rsd_t)
         rsd_grid = None
         if args.rsd_source == "cells":
-            rsd_grid = _cell_grid_rsd(fields, model, args, t_mix)
+            rsd_grid = _cell_grid_rsd(fields, cells, args, t_mix)
             fit = fit_rsd_decay(t_mix, rsd_grid)
         else:
             fit = fit_comp
@@ -184,21 +202,27 @@ def cmd_build(args: argparse.Namespace) -> int:
     if args.transit_times is not None:
         samples = dem_samples
         validation = "DEM transit times"
-    elif fields.has_crossings and args.surrogate > 0:
-        from twin_core.compartment.flows import cell_flows_from_crossings
-        from twin_core.compartment.surrogate import cell_network, walk_transit_times
+    elif cells is not None and fields.has_crossings and args.surrogate > 0:
+        from twin_core.compartment.surrogate import walk_transit_times
 
-        cn, _ = cell_network(fields, cell_flows_from_crossings(fields), model.mask_)
-        samples = walk_transit_times(cn, args.surrogate, seed=args.seed)
+        # the walk runs on the cell flows made conserving (raw counts of a short DEM run
+        # leave cells that are entered but never left)
+        samples = walk_transit_times(cells.periodic_, args.surrogate, seed=args.seed)
         validation = "random-walk surrogate"
     t_rtd = np.linspace(0.0, 8.0 * model.mean_residence_time_s_, 2001)
     e_sec = model.section_.impulse_response(t_rtd)
     if samples is not None:
         from twin_core.compartment import compare_rtd
 
+        e_cmp = e_sec
+        if args.transit_window is not None and validation == "DEM transit times":
+            from twin_core.compartment.validation import window_censored
+
+            e_cmp = window_censored(t_rtd, e_sec, args.transit_window)
+            validation = f"DEM transit times (window {args.transit_window} s)"
         report["rtd_validation"] = {
             "against": validation,
-            **compare_rtd(t_rtd, e_sec, samples=samples),
+            **compare_rtd(t_rtd, e_cmp, samples=samples),
         }
     print(json.dumps(report, indent=1, default=float))
     if args.figures is not None:
@@ -232,18 +256,17 @@ def _load_transit_times(path: Path) -> np.ndarray:
     return np.asarray(data, dtype=float)
 
 
-def _cell_grid_rsd(fields, model, args, t_mix: np.ndarray) -> np.ndarray:
+def _cell_grid_rsd(fields, cells, args, t_mix: np.ndarray) -> np.ndarray:
     """Grid RSD (seed Eq. B.1) of the cell-level network with the binomial sampling floor of
     the DEM's particles: the radial-mixing curve a DEM grid RSD would show."""
-    from twin_core.compartment import CompartmentModel
     from twin_core.compartment.radial import (
+        flowing,
         grid_rsd_from_compartments,
         section_concentrations,
         split_initial,
     )
     from twin_core.compartment.surrogate import coarse_index
 
-    cells = CompartmentModel(resolution="cells", flow_source=model.flow_source_).fit(fields)
     c0 = split_initial(fields, cells.labels_, axis=args.split_axis)
     c = section_concentrations(cells.periodic_, c0, t_mix)
     bins = tuple(args.rsd_grid)
@@ -255,6 +278,7 @@ def _cell_grid_rsd(fields, model, args, t_mix: np.ndarray) -> np.ndarray:
         coarse,
         int(np.prod(bins)),
         particles_per_kg=1.0 / fields.particle_mass_kg,
+        active=flowing(cells.periodic_),
     )
     return r
 

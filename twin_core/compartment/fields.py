@@ -257,3 +257,45 @@ def save_fields(path: str | Path, fields: GridFields) -> Path:
     path = Path(path)
     np.savez_compressed(path, **fields.to_dict())
     return path
+
+
+def mirror_axis(fields: GridFields, axis: int = 0) -> GridFields:
+    """The same fields seen with ``axis`` reversed (x -> x0 + x1 - x): arrays flipped, the
+    velocity component negated, and the crossings re-indexed (the + face of a mirrored cell is
+    the - face of the original one, i.e. the + face of its - neighbour, with the directions
+    swapped).  Used to orient the axial axis along the net flow."""
+    if axis not in (0, 1, 2):
+        raise ValueError(f"axis must be 0, 1 or 2, got {axis}")
+    e = fields.edges[axis]
+    new_e = e[0] + e[-1] - e[::-1]
+    edges = list(fields.edges)
+    edges[axis] = new_e
+    vel = np.flip(fields.velocity, axis=axis).copy()
+    vel[..., axis] *= -1.0
+    crossings = None
+    if fields.crossings is not None:
+        cs = []
+        for a, c in enumerate(fields.crossings):
+            if a == axis:
+                c = np.flip(np.roll(c, 1, axis=axis), axis=axis)[..., ::-1]
+                if not fields.periodic[axis]:
+                    idx = [slice(None)] * 4
+                    idx[axis] = -1
+                    c = c.copy()
+                    c[tuple(idx)] = 0.0
+            else:
+                c = np.flip(c, axis=axis)
+            cs.append(np.ascontiguousarray(c))
+        crossings = (cs[0], cs[1], cs[2])
+    return GridFields(
+        x_edges=edges[0],
+        y_edges=edges[1],
+        z_edges=edges[2],
+        velocity=vel,
+        solid_fraction=np.flip(fields.solid_fraction, axis=axis).copy(),
+        occupancy=np.flip(fields.occupancy, axis=axis).copy(),
+        duration_s=fields.duration_s,
+        particle_mass_kg=fields.particle_mass_kg,
+        periodic=fields.periodic,
+        crossings=crossings,
+    )

@@ -24,7 +24,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from twin_core.compartment.fields import GridFields
+from twin_core.compartment.fields import GridFields, mirror_axis
 from twin_core.compartment.flows import (
     FlowGraph,
     aggregate_flows,
@@ -78,6 +78,9 @@ class CompartmentModel:
         its own compartment: the finest network, used for radial mixing, where lumping
         mixes too fast).
     axial_axis : index of the periodic axial axis (0 = x).
+    axial_direction : "auto" (orient the axis along the net flow: fields whose net flow runs
+        towards -x are mirrored, ``mirrored_`` is then True and all maps refer to the mirrored
+        fields), "+" (keep) or "-" (always mirror).
 
     Attributes after :meth:`fit`: ``mask_``, ``zones_`` (variable -> zone map), ``maps_``
     (variable -> compartment map), ``labels_`` (product compartment map, -1 empty),
@@ -105,6 +108,7 @@ class CompartmentModel:
         n_upstream: int | None = None,
         resolution: str = "zones",
         axial_axis: int = 0,
+        axial_direction: str = "auto",
     ) -> None:
         self.variables = tuple(variables)
         self.tol_fraction = tol_fraction
@@ -116,6 +120,7 @@ class CompartmentModel:
         self.section_form = section_form
         self.n_upstream = n_upstream
         self.resolution = resolution
+        self.axial_direction = axial_direction
         self.axial_axis = axial_axis
 
     def _check(self, fields: GridFields) -> None:
@@ -133,6 +138,10 @@ class CompartmentModel:
         if self.section_form not in ("transit", "closed"):
             raise ValueError(
                 f"section_form must be 'transit' or 'closed', got {self.section_form!r}"
+            )
+        if self.axial_direction not in ("auto", "+", "-"):
+            raise ValueError(
+                f"axial_direction must be 'auto', '+' or '-', got {self.axial_direction!r}"
             )
         if self.resolution not in ("zones", "cells"):
             raise ValueError(f"resolution must be 'zones' or 'cells', got {self.resolution!r}")
@@ -167,6 +176,23 @@ class CompartmentModel:
         """Zone, compartmentalise, project the flows and build the sections; returns self."""
         self._check(fields)
         ax = self.axial_axis
+        source = self.flow_source
+        if source == "auto":
+            source = "crossings" if fields.has_crossings else "velocity"
+        self.flow_source_ = source
+        mirror = self.axial_direction == "-"
+        if self.axial_direction == "auto":
+            mask0 = occupied_mask(fields, self.empty_fraction)
+            cell0 = (
+                cell_flows_from_crossings(fields)
+                if source == "crossings"
+                else cell_flows_from_velocity(fields, mask0)
+            )
+            last = np.take(cell0[ax], fields.shape[ax] - 1, axis=ax)
+            mirror = float(last[..., 0].sum() - last[..., 1].sum()) < 0
+        if mirror:
+            fields = mirror_axis(fields, ax)
+        self.mirrored_ = bool(mirror)
         self.mask_ = occupied_mask(fields, self.empty_fraction)
         if not self.mask_.any():
             raise ValueError("fields: no occupied cell (occupancy is zero everywhere)")
@@ -200,10 +226,6 @@ class CompartmentModel:
                 "(occupancy zero in occupied cells?)"
             )
 
-        source = self.flow_source
-        if source == "auto":
-            source = "crossings" if fields.has_crossings else "velocity"
-        self.flow_source_ = source
         if source == "crossings":
             cell = cell_flows_from_crossings(fields)
         else:
@@ -275,6 +297,7 @@ class CompartmentModel:
             "axial_velocity_m_s": self.axial_velocity_m_s_,
             "raw_imbalance_max_rel": self.raw_imbalance_["max_rel"],
             "projection_correction_rel": self.correction_rel_,
+            "mirrored": self.mirrored_,
             "section_form": self.section_form,
             "n_upstream": self.n_upstream_,
             "truncated_crossings": self.transit_section_.meta["truncated_crossings"],

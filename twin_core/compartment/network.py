@@ -400,7 +400,9 @@ def first_passage_network(
 
     Copies -n_upstream..0 of the periodic section are joined through their periodic faces in
     both directions; forward flow out of copy 0 is absorbed (discharge), backward flow out of
-    the most upstream copy is removed (reflecting truncation, negligible for n_upstream >= 2).
+    the most upstream copy re-enters that copy's last slice (periodic truncation: every copy
+    keeps its flow balance, so no state is a trap; the error is set by the expected number of
+    such crossings per transit, ``meta["truncated_crossings"]``).
     The feed marks the entry distribution: ``entry="flux"`` the forward flow into copy 0
     through its inlet face; ``entry="record"`` (default) the stationary law of the entry
     state at record passages (:func:`record_entry`).  With "record" this is the exact RTD of
@@ -426,6 +428,9 @@ def first_passage_network(
             src.append(net.src[bwd] + off + n)
             dst.append(net.dst[bwd] + off)
             rate.append(net.rate[bwd])
+    src.append(net.src[bwd])
+    dst.append(net.dst[bwd])
+    rate.append(net.rate[bwd])
     dis = np.zeros(k * n)
     dis[(k - 1) * n :] = np.bincount(net.src[fwd], weights=net.rate[fwd], minlength=n)
     feed = np.zeros(k * n)
@@ -443,7 +448,7 @@ def first_passage_network(
         p, occ = record_entry(fp, net.dst[fwd], net.src[fwd], net.rate[fwd], n)
         fp.feed = p * feed.sum()
         # expected number of backward crossings out of the most upstream copy per transit:
-        # the events the reflecting truncation drops (0 for an infinite chain of copies)
+        # the events the periodic truncation folds back (0 for an infinite chain of copies)
         fp.meta["truncated_crossings"] = float(
             np.sum(net.rate[bwd] / net.holdup[net.src[bwd]] * occ[net.src[bwd]])
         )
@@ -491,15 +496,30 @@ def record_entry(
     rate / M_leave times it; the landing law is the next entry law.  Iterating this Markov
     operator converges to its fixed point (power iteration).
     """
+    from scipy.sparse.csgraph import breadth_first_order
     from scipy.sparse.linalg import splu
 
     A = fp.rate_matrix().tocsr()
-    # states without any way out (isolated compartments, traps of the truncated copy) hold no
-    # tracer that can be absorbed; solve on the others so that -A is non-singular
-    live = A.diagonal() < 0
+    off = fp.n - n
+    # solve only on the states the tracer can reach from an entry state: unreachable ones
+    # (isolated compartments or closed cycles cut off from the main flow) would make -A
+    # singular and never hold tracer
+    adj = sp.csr_matrix(
+        (
+            np.ones(fp.src.size + land.size),
+            (
+                np.concatenate([fp.src, np.full(land.size, fp.n)]),
+                np.concatenate([fp.dst, off + land]),
+            ),
+        ),
+        shape=(fp.n + 1, fp.n + 1),
+    )
+    reach = breadth_first_order(adj, fp.n, directed=True, return_predecessors=False)
+    live = np.zeros(fp.n + 1, dtype=bool)
+    live[reach] = True
+    live = live[: fp.n] & (A.diagonal() < 0)
     idx = np.flatnonzero(live)
     lu = splu((-A[idx][:, idx]).tocsc())
-    off = fp.n - n
     p = fp.feed / fp.feed.sum()
     for _ in range(max_iter):
         occ = np.zeros(fp.n)

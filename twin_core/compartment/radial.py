@@ -44,15 +44,28 @@ def section_concentrations(net: CompartmentNetwork, c0: np.ndarray, t: np.ndarra
     return m / closed.holdup[None, :]
 
 
+def flowing(net: CompartmentNetwork) -> np.ndarray:
+    """Compartments with any flow in or out (stagnant, isolated ones never mix)."""
+    used = np.zeros(net.n, dtype=bool)
+    used[net.src] = True
+    used[net.dst] = True
+    return used
+
+
 def section_rsd(
     net: CompartmentNetwork,
     c0: np.ndarray,
     t: np.ndarray,
     weighted: bool = False,
 ) -> np.ndarray:
-    """RSD(t) across compartments (Eq. 2; holdup-weighted if ``weighted``)."""
+    """RSD(t) across the flowing compartments (Eq. 2; holdup-weighted if ``weighted``).
+
+    Compartments without any flow (a stagnant pocket, or cells a short DEM run saw occupied
+    but never crossed) keep their initial concentration for ever and are left out.
+    """
     c = section_concentrations(net, c0, t)
-    return rsd(c, weights=net.holdup if weighted else None, axis=1)
+    use = flowing(net)
+    return rsd(c[:, use], weights=net.holdup[use] if weighted else None, axis=1)
 
 
 def grid_rsd_from_compartments(
@@ -62,16 +75,20 @@ def grid_rsd_from_compartments(
     coarse: np.ndarray,
     n_coarse: int,
     particles_per_kg: float | None = None,
+    active: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Model counterpart of the DEM grid RSD (Eq. B.1) on coarse sampling cells.
 
     Each occupied cell takes its compartment's concentration; a coarse cell takes the
     holdup-weighted mean.  Returns (RSD without sampling noise, RSD with the binomial
     sampling variance c (1 - c) / N_cell of a finite particle sample added when
-    ``particles_per_kg`` is given, else the same array).
+    ``particles_per_kg`` is given, else the same array).  ``active`` (bool per compartment,
+    e.g. :func:`flowing`) leaves the cells of inactive compartments out.
     """
     hit = labels >= 0
     w = holdup_cell[hit]
+    if active is not None:
+        w = w * np.asarray(active, dtype=bool)[labels[hit]]
     cc = coarse
     mass = np.bincount(cc, weights=w, minlength=n_coarse)
     ok = mass > 0
@@ -118,3 +135,78 @@ def grid_rsd_from_positions(
         return float("nan")
     c = tr[ok] / tot[ok]
     return float(np.std(c, ddof=1) / np.mean(c)) if c.mean() > 0 else float("nan")
+
+
+def grid_rsd_sampled(
+    c: np.ndarray,
+    labels: np.ndarray,
+    occupancy: np.ndarray,
+    coarse: np.ndarray,
+    n_coarse: int,
+    seed: int | np.random.Generator | None = None,
+    n_samples: int = 20,
+    active: np.ndarray | None = None,
+    min_count: int = 1,
+) -> np.ndarray:
+    """Model counterpart of a DEM grid RSD (Eq. B.1) for sparse particle samples.
+
+    For each time, ``n_samples`` particle snapshots are drawn: Poisson particle counts per
+    occupied cell with the mean ``occupancy``, each particle a tracer with the probability
+    given by its compartment's concentration; the RSD over sampling cells holding at least
+    ``min_count`` particles is averaged over the snapshots.  Unlike the binomial-floor
+    formula this is right when cells hold a particle or less on average.
+    """
+    rng = np.random.default_rng(seed)
+    hit = labels >= 0
+    lab = labels[hit]
+    occ = occupancy[hit].astype(float)
+    if active is not None:
+        occ = occ * np.asarray(active, dtype=bool)[lab]
+    out = np.empty(np.atleast_2d(c).shape[0])
+    for k, ck in enumerate(np.atleast_2d(c)):
+        p = np.clip(ck[lab], 0.0, 1.0)
+        vals = []
+        for _ in range(n_samples):
+            n = rng.poisson(occ)
+            nt = rng.binomial(n, p)
+            tot = np.bincount(coarse, weights=n, minlength=n_coarse)
+            tr = np.bincount(coarse, weights=nt, minlength=n_coarse)
+            ok = tot >= min_count
+            if ok.sum() > 1:
+                cc = tr[ok] / tot[ok]
+                if cc.mean() > 0:
+                    vals.append(np.std(cc, ddof=1) / cc.mean())
+        out[k] = float(np.mean(vals)) if vals else float("nan")
+    return out
+
+
+def cell_index_of_positions(positions: np.ndarray, fields: GridFields) -> np.ndarray:
+    """Flat cell index (C order over (nx, ny, nz)) of particle positions; periodic axes are
+    wrapped into the box, positions outside a closed axis are clipped to its end cells."""
+    pos = np.asarray(positions, dtype=float)
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise ValueError(f"positions must have shape (n, 3), got {pos.shape}")
+    idx = []
+    for axis in range(3):
+        e = fields.edges[axis]
+        x = pos[:, axis]
+        if fields.periodic[axis]:
+            x = e[0] + np.mod(x - e[0], e[-1] - e[0])
+        idx.append(np.clip(np.searchsorted(e, x, side="right") - 1, 0, e.size - 2))
+    nx, ny, nz = fields.shape
+    return (idx[0] * ny + idx[1]) * nz + idx[2]
+
+
+def initial_from_particles(
+    positions: np.ndarray, is_tracer: np.ndarray, fields: GridFields, labels: np.ndarray
+) -> np.ndarray:
+    """Compartment concentrations from a particle snapshot: the tracer fraction of the
+    particles found in each compartment (the overall fraction where none is found)."""
+    cell = cell_index_of_positions(positions, fields)
+    lab = labels.ravel()[cell]
+    ok = lab >= 0
+    n = int(labels.max()) + 1
+    tot = np.bincount(lab[ok], minlength=n).astype(float)
+    tr = np.bincount(lab[ok], weights=np.asarray(is_tracer, float)[ok], minlength=n)
+    mean = float(np.mean(is_tracer))
+    return np.where(tot > 0, tr / np.maximum(tot, 1.0), mean)

@@ -56,6 +56,9 @@ class _Chain:
         self.ptr = np.concatenate([[0], np.cumsum(np.bincount(self.src, minlength=n))])
         self.cum = np.cumsum(rate)
         self.total = np.bincount(self.src, weights=rate, minlength=n)
+        # mean holding time 1 / total rate; a node without way out holds forever
+        self.mean_hold = np.full(n, np.inf)
+        np.divide(1.0, self.total, out=self.mean_hold, where=self.total > 0)
         self.entry = np.bincount(net.dst[fwd], weights=net.rate[fwd], minlength=n)
 
     def jump(self, state: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -109,7 +112,7 @@ def walk_transit_times(
     alive = np.arange(n_particles)
     while alive.size:
         s = state[alive]
-        time[alive] += rng.exponential(1.0, alive.size) / ch.total[s]
+        time[alive] += rng.exponential(1.0, alive.size) * ch.mean_hold[s]
         nxt, off = ch.jump(s, rng)
         offset[alive] += off
         state[alive] = nxt
@@ -139,14 +142,14 @@ def walk_snapshots(
     if np.any(np.diff(times) < 0):
         raise ValueError("times must be non-decreasing")
     state = np.asarray(start, dtype=np.int64).copy()
-    t_next = rng.exponential(1.0, state.size) / ch.total[state]
+    t_next = rng.exponential(1.0, state.size) * ch.mean_hold[state]
     out = np.empty((times.size, state.size), dtype=np.int64)
     for k, T in enumerate(times):
         moving = np.flatnonzero(t_next <= T)
         while moving.size:
             nxt, _ = ch.jump(state[moving], rng)
             state[moving] = nxt
-            t_next[moving] += rng.exponential(1.0, moving.size) / ch.total[nxt]
+            t_next[moving] += rng.exponential(1.0, moving.size) * ch.mean_hold[nxt]
             moving = moving[t_next[moving] <= T]
         out[k] = state
     return out

@@ -4,11 +4,30 @@ Metrics: mean and variance (with standard errors for samples), the Kolmogorov-Sm
 distance sup |F_model - F_ref| and the Wasserstein-1 (earth mover's) distance
 int |F_model - F_ref| dt (Villani, *Optimal Transport*, 2009, Remark 6.6: for 1-D
 distributions W1 is the L1 distance of the CDFs), also relative to the reference mean.
+
+A DEM run observes only the transits that start and end inside its recording window of length
+W; for a stationary process such intervals have the density E(t) (W - t)+ / norm (window
+censoring of renewal intervals, Cox, *Renewal Theory*, 1962, ch. 5; the same length bias as
+in survival analysis).  :func:`window_censored` applies it to a model E(t) so that it can be
+compared with the transit times of a run shorter than the RTD's tail.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+
+def window_censored(t: np.ndarray, e: np.ndarray, window_s: float) -> np.ndarray:
+    """E_W(t) = E(t) (W - t)+ / int E(s) (W - s)+ ds: the law of transits observed entirely
+    inside a recording window of length W (module docstring)."""
+    if window_s <= 0:
+        raise ValueError(f"window_s must be > 0, got {window_s}")
+    t = np.asarray(t, dtype=float)
+    w = np.asarray(e, dtype=float) * np.clip(window_s - t, 0.0, None)
+    area = float(np.trapezoid(w, t))
+    if area <= 0:
+        raise ValueError(f"no model transit fits in a window of {window_s} s")
+    return w / area
 
 
 def _cdf_from_e(t: np.ndarray, e: np.ndarray) -> np.ndarray:
