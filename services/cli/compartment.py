@@ -257,11 +257,12 @@ def _load_transit_times(path: Path) -> np.ndarray:
 
 
 def _cell_grid_rsd(fields, cells, args, t_mix: np.ndarray) -> np.ndarray:
-    """Grid RSD (seed Eq. B.1) of the cell-level network with the binomial sampling floor of
-    the DEM's particles: the radial-mixing curve a DEM grid RSD would show."""
+    """Grid RSD (seed Eq. B.1) of the cell-level network sampled like the DEM's particles
+    (Poisson counts per cell, binomial types; right also for sparse runs): the radial-mixing
+    curve a DEM grid RSD would show."""
     from twin_core.compartment.radial import (
         flowing,
-        grid_rsd_from_compartments,
+        grid_rsd_sampled,
         section_concentrations,
         split_initial,
     )
@@ -271,21 +272,21 @@ def _cell_grid_rsd(fields, cells, args, t_mix: np.ndarray) -> np.ndarray:
     c = section_concentrations(cells.periodic_, c0, t_mix)
     bins = tuple(args.rsd_grid)
     coarse = coarse_index(fields, cells.mask_, bins)
-    _, r = grid_rsd_from_compartments(
+    return grid_rsd_sampled(
         c,
         cells.labels_,
-        fields.holdup_kg,
+        fields.occupancy,
         coarse,
         int(np.prod(bins)),
-        particles_per_kg=1.0 / fields.particle_mass_kg,
+        seed=args.seed,
+        n_samples=10,
         active=flowing(cells.periodic_),
     )
-    return r
 
 
 def _mixing_grid(model) -> np.ndarray:
     """Times for the radial-mixing RSD: up to 3 x the section residence time."""
-    return np.linspace(0.0, 3.0 * model.mean_residence_time_s_, 301)
+    return np.linspace(0.0, 3.0 * model.mean_residence_time_s_, 121)
 
 
 def write_build_figures(
@@ -410,7 +411,7 @@ def write_build_figures(
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     axes[0].plot(t_mix, rsd_t, "k.", ms=3, label="compartments (Eq. 2)")
     if rsd_grid is not None:
-        axes[0].plot(t_mix, rsd_grid, "b.", ms=3, label="cell network: grid RSD + sampling")
+        axes[0].plot(t_mix, rsd_grid, "b.", ms=3, label="cell network: grid RSD, sampled")
     axes[0].plot(
         t_mix,
         rsd_decay(t_mix, fit["rsd_ss"], fit["rsd_0"], fit["k_b"]),
