@@ -60,6 +60,8 @@ class Flaky:
             self.calls += 1
         if params["PP_SF"] == 0.6 and not self.healed:
             raise RuntimeError("simulated crash")
+        if params["PP_SF"] == 0.1 and not self.healed:
+            return {"y": float("nan")}  # a failed measurement
         return {"y": params["PP_SF"] + params["PW_SF"]}
 
 
@@ -68,9 +70,11 @@ def test_resume_skips_finished_runs_and_retries_failed(tmp_path):
     flaky = Flaky()
     path = tmp_path / "res.csv"
     first = run_campaign(design, flaky, path, executor=ThreadPoolExecutor(2), progress=False)
-    n_bad = int((design.PP_SF == 0.6).sum())
+    n_crash = int((design.PP_SF == 0.6).sum())
+    n_bad = n_crash + int((design.PP_SF == 0.1).sum())
     assert (first.status == "error").sum() == n_bad and flaky.calls == 21
-    assert first.loc[first.status == "error", "error"].str.contains("simulated crash").all()
+    assert first.error.str.contains("simulated crash").sum() == n_crash
+    assert first.error.str.contains("non-finite response").sum() == n_bad - n_crash
     assert first.loc[first.status == "error", "y"].isna().all()
     flaky.healed = True
     second = run_campaign(design, flaky, path, executor=ThreadPoolExecutor(2), progress=False)

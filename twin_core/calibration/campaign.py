@@ -53,6 +53,10 @@ def _execute(run: RunFunction, run_id: Any, params: dict[str, float], seed: int)
             )
         for k, v in out.items():
             row[f"y:{k}"] = float(v)
+        bad = [k for k, v in out.items() if not math.isfinite(float(v))]
+        if bad:  # a failed measurement: kept in the table, retried on resume
+            row["status"] = "error"
+            row["error"] = f"non-finite response(s): {', '.join(bad)}"
     except Exception as exc:  # noqa: BLE001 - a failed run is recorded, not fatal
         row["status"] = "error"
         row["error"] = f"{type(exc).__name__}: {exc}"
