@@ -166,3 +166,25 @@ def test_stagnant_pocket_is_reported_and_harmless():
     area, mean, _ = rtd_moments(t, m.section_.impulse_response(t))
     assert area == pytest.approx(1.0, abs=1e-6) and mean == pytest.approx(tau, rel=2e-4)
     assert m.transit_section_.meta["truncated_crossings"] < 1e-4
+
+
+def test_no_net_axial_flow():
+    """Circulation without conveying: the periodic network still mixes (closed vessel), but
+    there is no RTD; the export says so."""
+    case = synthetic_blender_fields(4, 6, 6, backflow=0.0)
+    f = case.fields
+    cr = list(f.crossings)
+    net = cr[0][..., 0] - cr[0][..., 1]
+    col = net.mean(axis=0)  # the column through-flow, the same on every x face
+    c = cr[0].copy()
+    c[..., 0] = np.where(col > 0, c[..., 0] - col, c[..., 0])
+    c[..., 1] = np.where(col < 0, c[..., 1] + col, c[..., 1])
+    import dataclasses
+
+    f2 = dataclasses.replace(f, crossings=(np.maximum(c, 0.0), cr[1], cr[2]))
+    m = CompartmentModel().fit(f2)
+    assert abs(m.throughput_kg_s_) < 1e-12 * case.throughput_kg_s
+    assert m.section_ is None and m.mean_residence_time_s_ == float("inf")
+    assert np.abs(m.periodic_.balance()).max() < 1e-10 * m.periodic_.rate.max()
+    with pytest.raises(ValueError, match="no net axial flow"):
+        to_blender_model(m)

@@ -156,6 +156,11 @@ def cmd_build(args: argparse.Namespace) -> int:
             n_upstream=args.n_upstream,
         ).fit(fields)
         t_build = time.perf_counter() - t0
+        if model.section_ is None:
+            raise ValueError(
+                f"{args.fields}: no net axial flow through the periodic face "
+                f"({model.throughput_kg_s_:.3g} kg/s): no RTD, no blender model"
+            )
         if model.mirrored_:  # net flow towards -x: work in the model's orientation
             fields = mirror_axis(fields, model.axial_axis)
         # every cell its own compartment (same orientation): radial mixing and the surrogate

@@ -19,6 +19,11 @@ def blender_model_fields(
     """Plain-data fields of a BlenderModel for the periodic section of ``model``."""
     if n_sections < 1:
         raise ValueError(f"n_sections must be >= 1, got {n_sections}")
+    if model.section_ is None:
+        raise ValueError(
+            f"no net axial flow through the periodic face (throughput "
+            f"{model.throughput_kg_s_} kg/s): no RTD, no blender model"
+        )
     per = model.periodic_
     last = int(per.slice_index.max())
     fwd = per.wrap & (per.slice_index[per.src] == last) & (per.slice_index[per.dst] == 0)

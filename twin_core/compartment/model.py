@@ -238,6 +238,14 @@ class CompartmentModel:
         self.seed_flows_ = seed_flows(fields, labels, axial_axis=ax)
         self.seed_imbalance_ = imbalance_report(self.seed_flows_)
         self.section_length_m_ = float(fields.edges[ax][-1] - fields.edges[ax][0])
+        if self.throughput_kg_s_ <= 1e-9 * float(self.periodic_.rate.max(initial=0.0)):
+            # no net axial flow (e.g. blades without pitch): the closed periodic network still
+            # describes radial mixing, but there is no RTD and no blender model
+            self.closed_section_ = self.transit_section_ = self.section_ = None
+            self.n_upstream_ = 0
+            self.mean_residence_time_s_ = float("inf")
+            self.axial_velocity_m_s_ = 0.0
+            return self
         self.closed_section_ = open_section(self.periodic_, weights=self.projection_weights)
         self.transit_section_ = transit_network(self.periodic_, self.n_upstream)
         self.n_upstream_ = int(self.transit_section_.meta["n_upstream"])
@@ -300,8 +308,16 @@ class CompartmentModel:
             "mirrored": self.mirrored_,
             "section_form": self.section_form,
             "n_upstream": self.n_upstream_,
-            "truncated_crossings": self.transit_section_.meta["truncated_crossings"],
-            "open_correction_rel": self.closed_section_.meta.get("open_correction_rel", 0.0),
+            "truncated_crossings": (
+                self.transit_section_.meta["truncated_crossings"]
+                if self.transit_section_ is not None
+                else float("nan")
+            ),
+            "open_correction_rel": (
+                self.closed_section_.meta.get("open_correction_rel", 0.0)
+                if self.closed_section_ is not None
+                else float("nan")
+            ),
             "seed_imbalance_max_rel": self.seed_imbalance_["max_rel"],
             "dropped_flow_kg_s": self.raw_flows_.dropped_kg_s,
             "isolated_compartments": int(self.isolated_.size),
