@@ -86,6 +86,7 @@ class Supervisor:
         self.log_level = log_level
         self.children = {n: Child(n) for n in names}
         self.alive: set[str] = set()
+        self._recheck = False
         self.session: zenoh.Session | None = None
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -128,7 +129,23 @@ class Supervisor:
             if sample.kind == zenoh.SampleKind.PUT:
                 self.alive.add(name)
             else:
+                # a restarted service declares the same key: the old token's deletion may come
+                # after the new token; the watcher re-queries the live tokens
                 self.alive.discard(name)
+                self._recheck = True
+
+    def refresh_alive(self, timeout_s: float = 1.0) -> set[str]:
+        """Query the live tokens (the truth, whatever order the events came in)."""
+        names = set()
+        assert self.session is not None
+        for reply in self.session.liveliness().get(
+            f"twin/{self.spec.name}/service/*/alive", timeout=timeout_s
+        ):
+            if reply.ok is not None:
+                names.add(str(reply.ok.key_expr).split("/")[-2])
+        with self._lock:
+            self.alive = names
+        return names
 
     def _spawn(self, child: Child) -> None:
         env = dict(os.environ)
@@ -185,6 +202,9 @@ class Supervisor:
         if child.lost_since is None:
             child.lost_since = now
         elif now - child.lost_since >= self.liveliness_timeout_s:
+            if child.name in self.refresh_alive():
+                child.lost_since = None
+                return
             log.warning(
                 "%s (pid %d) lost its liveliness token %.1f s ago: killing it",
                 child.name,
@@ -198,6 +218,12 @@ class Supervisor:
         last_health = 0.0
         while not self._stop.wait(0.1):
             now = time.monotonic()
+            if self._recheck:
+                self._recheck = False
+                try:
+                    self.refresh_alive(0.5)
+                except Exception as exc:  # noqa: BLE001 - keep supervising
+                    log.debug("liveliness query failed: %s", exc)
             for child in self.children.values():
                 self._check_liveliness(child, now)
             if now - last_health >= 1.0:

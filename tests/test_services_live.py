@@ -135,7 +135,12 @@ def run_a(tmp_path_factory):
             out["n_sent"] = rp.replay()
             killer_done.wait(20)
             # the restarted oos catches up from the publishers' history
-            assert wait_until(lambda: len(col.alerts) >= 2, 40), col.alerts
+            ok = wait_until(lambda: len(col.alerts) >= 2, 40)
+            assert ok, (
+                col.alerts,
+                {k: (h.state, h.t, h.counters) for k, h in col.health.items()},
+                sup.children["oos"].exit_codes,
+            )
             time.sleep(1.5)  # anything duplicated would arrive now
             bad.undeclare()
         out["restarts"] = sup.children["oos"].restarts
