@@ -58,6 +58,27 @@ def test_cli_build_and_simulate(tmp_path, capsys):
         == 0
     )
     assert json.loads(capsys.readouterr().out)["rtd_validation"]["against"] == "DEM transit times"
+    assert (
+        main(
+            [
+                "compartment",
+                "build",
+                str(fields),
+                "--out",
+                str(model),
+                "--transit-times",
+                str(tt),
+                "--transit-window",
+                "20",
+                "--rsd-source",
+                "compartments",
+            ]
+        )
+        == 0
+    )
+    rv = json.loads(capsys.readouterr().out)["rtd_validation"]
+    assert rv["against"].startswith("DEM transit times (window 20")
+    assert rv["model_mean"] < bm.mean_residence_time_s / 4  # censoring shortens the law
 
     csv = tmp_path / "s.csv"
     rc = main(

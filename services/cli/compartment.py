@@ -216,6 +216,7 @@ def cmd_build(args: argparse.Namespace) -> int:
         validation = "random-walk surrogate"
     t_rtd = np.linspace(0.0, 8.0 * model.mean_residence_time_s_, 2001)
     e_sec = model.section_.impulse_response(t_rtd)
+    e_cmp = None
     if samples is not None:
         from twin_core.compartment import compare_rtd
 
@@ -244,6 +245,7 @@ def cmd_build(args: argparse.Namespace) -> int:
             fit,
             bm,
             rsd_grid,
+            e_cmp if e_cmp is not e_sec else None,
         )
     return 0
 
@@ -295,7 +297,19 @@ def _mixing_grid(model) -> np.ndarray:
 
 
 def write_build_figures(
-    out, fields, model, t_rtd, e_sec, samples, validation, t_mix, rsd_t, fit, bm, rsd_grid=None
+    out,
+    fields,
+    model,
+    t_rtd,
+    e_sec,
+    samples,
+    validation,
+    t_mix,
+    rsd_t,
+    fit,
+    bm,
+    rsd_grid=None,
+    e_censored=None,
 ) -> list[Path]:
     """Zone maps, compartment maps, network graph, RTD comparison and RSD (PNG files)."""
     import matplotlib
@@ -398,6 +412,8 @@ def write_build_figures(
             label=f"{validation} (n={fin.size})",
         )
     ax.plot(t_rtd, e_sec, "k-", label=f"compartment model ({model.section_form} form)")
+    if e_censored is not None:
+        ax.plot(t_rtd, e_censored, "r--", label="model censored to the recording window")
     ax.axvline(model.mean_residence_time_s_, color="k", ls=":", label="V/Q")
     ax.set_xlabel("t (s)")
     ax.set_ylabel("E(t) (1/s)")
