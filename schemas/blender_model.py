@@ -50,6 +50,11 @@ class BlenderModel(BaseModel):
     coupling: Literal["mixing_cup"] = "mixing_cup"
     throughput_kg_h: float = Field(gt=0, description="throughput basis of the flows")
     rpm_basis: float | None = Field(default=None, gt=0)
+    rpm_flow_scale: list[tuple[float, float]] | None = Field(
+        default=None,
+        description="(rpm, net axial flow / basis flow) measured on DEM runs at other blade "
+        "speeds; flow_scale_for_rpm interpolates them (proportional to rpm without them)",
+    )
     section_length_m: float = Field(gt=0)
     compartment_centroid_m: list[list[float]] | None = None
     rsd_ss: float | None = None
@@ -86,6 +91,9 @@ class BlenderModel(BaseModel):
             v = np.asarray(getattr(self, name), dtype=float)
             if not np.all(np.isfinite(v)) or np.any(v < 0):
                 raise ValueError(f"{name} must be finite and >= 0")
+        for r, sc in self.rpm_flow_scale or []:
+            if not (r > 0 and sc >= 0 and np.isfinite(r) and np.isfinite(sc)):
+                raise ValueError(f"rpm_flow_scale needs rpm > 0 and scale >= 0, got ({r}, {sc})")
         if len(self.inlet_kg_s) != len(self.inlet_compartments):
             raise ValueError("inlet_kg_s must have one value per inlet compartment")
         if len(self.outlet_kg_s) != len(self.outlet_compartments):
@@ -139,6 +147,25 @@ class BlenderModel(BaseModel):
         dst = np.asarray(self.flow_dst, dtype=np.int64)
         r = np.asarray(self.flow_kg_s, dtype=float)
         return np.bincount(dst, weights=r, minlength=n) - np.bincount(src, weights=r, minlength=n)
+
+    def flow_scale_for_rpm(self, rpm: np.ndarray) -> np.ndarray:
+        """Flow scale s(rpm) for :meth:`predict`: linear interpolation of ``rpm_flow_scale``
+        with (rpm_basis, 1) and (0, 0); proportional to rpm / rpm_basis beyond the last point
+        (and everywhere when no points are stored)."""
+        if self.rpm_basis is None:
+            raise ValueError("flow_scale_for_rpm needs rpm_basis in the model")
+        rpm = np.asarray(rpm, dtype=float)
+        if np.any(rpm < 0) or not np.all(np.isfinite(rpm)):
+            raise ValueError("rpm must be finite and >= 0")
+        pts = {0.0: 0.0, float(self.rpm_basis): 1.0}
+        for r, sc in self.rpm_flow_scale or []:
+            pts[float(r)] = float(sc)
+        x = np.array(sorted(pts))
+        y = np.array([pts[v] for v in x])
+        out = np.interp(rpm, x, y)
+        beyond = rpm > x[-1]
+        out[beyond] = y[-1] * rpm[beyond] / x[-1]
+        return out
 
     # ------------------------------------------------------------------ numerics
     def periodic_network(self) -> Any:

@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from schemas.blender_model import BlenderModel
 from services.cli.main import main
@@ -25,6 +26,11 @@ def test_cli_build_and_simulate(tmp_path, capsys):
             str(figs),
             "--sections",
             "4",
+            "--rpm",
+            "100",
+            "--rpm-run",
+            "50",
+            str(fields),
             "--surrogate",
             "2000",
         ]
@@ -36,6 +42,7 @@ def test_cli_build_and_simulate(tmp_path, capsys):
     assert report["rtd_validation"]["against"] == "random-walk surrogate"
     bm = BlenderModel.load(model)
     assert bm.n_sections == 4 and bm.k_b_per_s is not None and bm.k_b_per_s > 0
+    assert bm.rpm_flow_scale == [(50.0, pytest.approx(1.0))]  # same fields at "50 rpm"
     for name in ("zone_maps", "compartment_maps", "network_graph", "rtd_comparison", "rsd"):
         assert (figs / f"{name}.png").stat().st_size > 1000
     # DEM transit times given as an npz with 'transit_s'
@@ -149,4 +156,6 @@ def test_cli_simulate_bad_input(tmp_path, caplog):
     assert main(["compartment", "simulate", str(model), "--step-at", "5"]) == 2
     assert "--step-at needs --step-to" in caplog.text
     assert main(["compartment", "simulate", str(model), "--dt", "0"]) == 2
+    assert main(["compartment", "simulate", str(model), "--scale-at", "1", "--rpm-to", "50"]) == 2
+    assert "needs rpm_basis" in caplog.text
     assert main(["compartment"]) == 2

@@ -145,3 +145,21 @@ def test_blender_model_export_roundtrip(model, tmp_path):
         BlenderModel.model_validate(d)
     with pytest.raises(ValueError, match="rsd_profile needs"):
         bm.rsd_profile(np.array([0.0]))
+
+
+def test_rpm_law_from_runs_at_other_speeds():
+    """The flow scale of dynamic runs from DEM runs at other blade speeds: the ratio of net
+    axial flows (here two synthetic fields whose throughputs differ by 0.4), interpolated
+    linearly through (0, 0) and (rpm_basis, 1), proportional beyond."""
+    base = CompartmentModel().fit(synthetic_blender_fields(4, 6, 6, mean_residence_s=4.0).fields)
+    slow = CompartmentModel().fit(synthetic_blender_fields(4, 6, 6, mean_residence_s=10.0).fields)
+    bm = to_blender_model(base, n_sections=2, rpm_basis=100.0, rpm_runs={50.0: slow})
+    ((r, sc),) = bm.rpm_flow_scale
+    assert r == 50.0 and sc == pytest.approx(0.4, rel=1e-9)
+    np.testing.assert_allclose(
+        bm.flow_scale_for_rpm(np.array([0.0, 25.0, 50.0, 75.0, 100.0, 200.0])),
+        [0.0, 0.2, 0.4, 0.7, 1.0, 2.0],
+        rtol=1e-9,
+    )
+    with pytest.raises(ValueError, match="rpm must be finite"):
+        bm.flow_scale_for_rpm(np.array([-1.0]))

@@ -50,6 +50,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "backward crossings per transit)",
     )
     b.add_argument("--rpm", type=float, default=None, help="blade speed basis of the fields")
+    b.add_argument(
+        "--rpm-run",
+        nargs=2,
+        action="append",
+        default=[],
+        metavar=("RPM", "FIELDS"),
+        help="fields of a DEM run at another blade speed: its net axial flow calibrates the "
+        "rpm law of dynamic runs (repeatable; needs --rpm)",
+    )
     b.add_argument("--split-axis", type=int, default=1, help="axis of the two-type RSD split")
     b.add_argument(
         "--rsd-source",
@@ -105,6 +114,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=float,
         default=1.0,
         help="flows relative to the basis after --scale-at (rpm or throughput ratio)",
+    )
+    s.add_argument(
+        "--rpm-to",
+        type=float,
+        default=None,
+        help="blade speed after --scale-at (the flow scale from the model's rpm law)",
     )
     s.add_argument("--out", type=Path, default=None, help="CSV of t, inlet, outlet")
     s.add_argument("--figures", type=Path, default=None, help="directory for PNG figures")
@@ -182,8 +197,18 @@ def cmd_build(args: argparse.Namespace) -> int:
             fit = fit_rsd_decay(t_mix, rsd_grid)
         else:
             fit = fit_comp
+        rpm_runs = {
+            float(r): CompartmentModel(
+                variables=variables,
+                tol_fraction=args.tol,
+                min_cells=args.min_cells,
+                flow_source=args.flow_source,
+            ).fit(load_fields(Path(p)))
+            for r, p in args.rpm_run
+        }
         bm = to_blender_model(
             model,
+            rpm_runs=rpm_runs or None,
             n_sections=args.sections,
             rpm_basis=args.rpm,
             rsd_fit=fit,
@@ -471,9 +496,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             u[(t >= args.pulse_at) & (t < args.pulse_at + args.pulse_width)] += args.pulse_height
         scale = None
         if args.scale_at is not None:
-            if args.scale_to < 0:
-                raise ValueError(f"--scale-to must be >= 0, got {args.scale_to}")
-            scale = np.where(t >= args.scale_at, args.scale_to, 1.0)
+            to = args.scale_to
+            if args.rpm_to is not None:
+                to = float(bm.flow_scale_for_rpm(np.array([args.rpm_to]))[0])
+            if to < 0:
+                raise ValueError(f"--scale-to must be >= 0, got {to}")
+            scale = np.where(t >= args.scale_at, to, 1.0)
         t0 = time.perf_counter()
         y = bm.predict(t, u, flow_scale=scale)
         elapsed = time.perf_counter() - t0

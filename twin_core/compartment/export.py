@@ -15,8 +15,13 @@ def blender_model_fields(
     rpm_basis: float | None = None,
     rsd_fit: dict[str, float] | None = None,
     source: str = "",
+    rpm_runs: dict[float, CompartmentModel] | None = None,
 ) -> dict[str, Any]:
-    """Plain-data fields of a BlenderModel for the periodic section of ``model``."""
+    """Plain-data fields of a BlenderModel for the periodic section of ``model``.
+
+    ``rpm_runs`` maps other blade speeds to models fitted on DEM runs there; the ratios of their
+    net axial flows to this one become ``rpm_flow_scale`` (the rpm law of dynamic runs).
+    """
     if n_sections < 1:
         raise ValueError(f"n_sections must be >= 1, got {n_sections}")
     if model.section_ is None:
@@ -53,6 +58,13 @@ def blender_model_fields(
         "source": source,
         "notes": {k: v for k, v in model.summary().items() if isinstance(v, (int, float, str))},
     }
+    if rpm_runs:
+        if rpm_basis is None:
+            raise ValueError("rpm_runs needs rpm_basis")
+        d["rpm_flow_scale"] = [
+            (float(r), float(m.throughput_kg_s_ / model.throughput_kg_s_))
+            for r, m in sorted(rpm_runs.items())
+        ]
     if rsd_fit is not None:
         d["rsd_ss"] = rsd_fit["rsd_ss"]
         d["rsd_0"] = rsd_fit["rsd_0"]
