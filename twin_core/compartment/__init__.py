@@ -2,68 +2,60 @@
 
 Fields (npz) -> zones -> compartments -> conserving flows -> linear network -> RTD / RSD ->
 whole blender (n sections) -> serializable :class:`schemas.blender_model.BlenderModel`.
+
+The names below are imported from their submodules on first use (PEP 562), so that loading a
+blender model for prediction does not import the zoning and fitting machinery.
 """
 
-from twin_core.compartment.blender import (
-    blender_rsd_profile,
-    blender_rtd,
-    fit_rsd_decay,
-    predict_outlet,
-    rsd_decay,
-)
-from twin_core.compartment.export import blender_model_fields, to_blender_model
-from twin_core.compartment.fields import GridFields, load_fields, save_fields, validate_fields
-from twin_core.compartment.flows import (
-    aggregate_flows,
-    cell_flows_from_crossings,
-    cell_flows_from_velocity,
-    imbalance_report,
-    project_flows,
-    seed_flows,
-)
-from twin_core.compartment.model import CompartmentModel
-from twin_core.compartment.network import (
-    CompartmentNetwork,
-    chain_sections,
-    convolve_power,
-    first_passage_network,
-    open_section,
-    rsd,
-    rtd_moments,
-)
-from twin_core.compartment.radial import section_rsd, split_initial
-from twin_core.compartment.synthetic import SyntheticCase, synthetic_blender_fields
-from twin_core.compartment.validation import compare_rtd
+from __future__ import annotations
 
-__all__ = [
-    "CompartmentModel",
-    "CompartmentNetwork",
-    "GridFields",
-    "SyntheticCase",
-    "aggregate_flows",
-    "blender_model_fields",
-    "blender_rsd_profile",
-    "blender_rtd",
-    "cell_flows_from_crossings",
-    "cell_flows_from_velocity",
-    "chain_sections",
-    "compare_rtd",
-    "convolve_power",
-    "first_passage_network",
-    "fit_rsd_decay",
-    "imbalance_report",
-    "load_fields",
-    "open_section",
-    "predict_outlet",
-    "project_flows",
-    "rsd",
-    "rsd_decay",
-    "rtd_moments",
-    "save_fields",
-    "section_rsd",
-    "seed_flows",
-    "split_initial",
-    "synthetic_blender_fields",
-    "to_blender_model",
-    "validate_fields",
-]
+import importlib
+from typing import Any
+
+_EXPORTS: dict[str, str] = {
+    "blender_rsd_profile": "blender",
+    "blender_rtd": "blender",
+    "fit_rsd_decay": "blender",
+    "predict_outlet": "blender",
+    "rsd_decay": "blender",
+    "blender_model_fields": "export",
+    "to_blender_model": "export",
+    "GridFields": "fields",
+    "load_fields": "fields",
+    "save_fields": "fields",
+    "validate_fields": "fields",
+    "aggregate_flows": "flows",
+    "cell_flows_from_crossings": "flows",
+    "cell_flows_from_velocity": "flows",
+    "imbalance_report": "flows",
+    "project_flows": "flows",
+    "seed_flows": "flows",
+    "CompartmentModel": "model",
+    "CompartmentNetwork": "network",
+    "chain_sections": "network",
+    "convolve_power": "network",
+    "first_passage_network": "network",
+    "open_section": "network",
+    "rsd": "network",
+    "rtd_moments": "network",
+    "section_rsd": "radial",
+    "split_initial": "radial",
+    "SyntheticCase": "synthetic",
+    "synthetic_blender_fields": "synthetic",
+    "compare_rtd": "validation",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'twin_core.compartment' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"twin_core.compartment.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

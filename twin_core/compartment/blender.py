@@ -21,13 +21,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.optimize import curve_fit
-from scipy.signal import fftconvolve
 
 from twin_core.compartment.network import (
     CompartmentNetwork,
     _propagate,
     convolve_power,
+    fftconvolve,
     section_tau,
 )
 
@@ -168,6 +167,8 @@ def fit_rsd_decay(t: np.ndarray, rsd_values: np.ndarray) -> dict[str, float]:
     Returns estimates ``rsd_ss``, ``rsd_0``, ``k_b`` (1/s) with standard errors ``*_se`` from
     the covariance of ``scipy.optimize.curve_fit`` and the residual RMS.
     """
+    from scipy.optimize import curve_fit
+
     t = np.asarray(t, dtype=float)
     y = np.asarray(rsd_values, dtype=float)
     ok = np.isfinite(y)

@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy.linalg import expm
-from scipy.signal import fftconvolve
 from scipy.sparse.linalg import expm_multiply
 
 from twin_core.compartment.flows import incidence, node_balance, project_flows
@@ -551,6 +550,16 @@ def closed_network(net: CompartmentNetwork) -> CompartmentNetwork:
 
 
 # ----------------------------------------------------------------------------- RTD tools
+
+
+def fftconvolve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Full linear convolution of two real 1-D arrays by real FFTs (scipy.fft, zero-padded to a
+    fast length); the same as ``scipy.signal.fftconvolve`` without importing scipy.signal."""
+    from scipy import fft as sfft
+
+    n = a.size + b.size - 1
+    m = sfft.next_fast_len(n, real=True)
+    return sfft.irfft(sfft.rfft(a, m) * sfft.rfft(b, m), m)[:n]
 
 
 def trapezoid_convolve(e1: np.ndarray, e2: np.ndarray, dt: float) -> np.ndarray:
