@@ -168,15 +168,17 @@ def _propagate(
     """
     dt = _uniform_dt(t)
     n = net.n
-    A = net.rate_matrix().toarray()
     dvec = net.discharge / net.holdup
     m = np.asarray(m0, dtype=float)
-    if t[0] > 0:
-        m = expm(A * t[0]) @ m
-    if n > 1200:
+    if n > 1200:  # large networks: sparse Krylov-free action of the exponential
         Asp = net.rate_matrix().tocsc()
+        if t[0] > 0:
+            m = expm_multiply(Asp * t[0], m)
         ms = expm_multiply(Asp, m, start=0.0, stop=t[-1] - t[0], num=t.size, endpoint=True)
         return ms @ dvec, ms.sum(axis=1)
+    A = net.rate_matrix().toarray()
+    if t[0] > 0:
+        m = expm(A * t[0]) @ m
     Phi = expm(A * dt)
     B = min(block, t.size)
     R = np.empty((B, n))
