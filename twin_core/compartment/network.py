@@ -170,7 +170,7 @@ def _propagate(
     n = net.n
     dvec = net.discharge / net.holdup
     m = np.asarray(m0, dtype=float)
-    if n > 1200:  # large networks: sparse Krylov-free action of the exponential
+    if n > 1200:  # large networks: sparse action of the exponential (Al-Mohy & Higham 2011)
         Asp = net.rate_matrix().tocsc()
         if t[0] > 0:
             m = expm_multiply(Asp * t[0], m)
