@@ -188,3 +188,15 @@ def test_no_net_axial_flow():
     assert np.abs(m.periodic_.balance()).max() < 1e-10 * m.periodic_.rate.max()
     with pytest.raises(ValueError, match="no net axial flow"):
         to_blender_model(m)
+
+
+def test_projection_leaves_no_round_off_trickles():
+    """A dead end (a node with inflow but no outflow edge) must end with exactly zero inflow,
+    not a round-off trickle that would make it a trap of the tracer network (KKT: the flow
+    into a node that cannot pass it on is 0)."""
+    # cycle 0 -> 1 -> 2 -> 0 plus a dead end 1 -> 3
+    src, dst = np.array([0, 1, 2, 1]), np.array([1, 2, 0, 3])
+    C = incidence(4, src, dst)
+    f = project_flows(C, np.zeros(4), np.array([1.0, 0.9, 1.1, 0.05]))
+    assert f[3] == 0.0
+    np.testing.assert_allclose(f[:3], 1.0, rtol=1e-12)
