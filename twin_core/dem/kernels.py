@@ -59,6 +59,15 @@ def _min_image(d: float, length: float, periodic: bool) -> float:
     return d
 
 
+@njit(cache=True, inline="always")
+def _clear3(h, i, k):
+    """Zero the 3-vector h[i, k] if it is not zero already (avoids dirtying cache lines)."""
+    if h[i, k, 0] != 0.0 or h[i, k, 1] != 0.0 or h[i, k, 2] != 0.0:
+        h[i, k, 0] = 0.0
+        h[i, k, 1] = 0.0
+        h[i, k, 2] = 0.0
+
+
 @njit(cache=True)
 def closest_point_triangle(px, py, pz, tri):
     """Closest point of triangle ``tri`` (9 floats: a, b, c) to point p.
@@ -247,11 +256,13 @@ def pair_pass(n, P, F, IA, nb, nown, hist, pf, pt, dom, per, dt):
             rs = ri + rj
             d2 = dx * dx + dy * dy + dz * dz
             if d2 >= rs * rs:
-                hist[i, k, 0] = 0.0
-                hist[i, k, 1] = 0.0
-                hist[i, k, 2] = 0.0
-                for c in range(10):
-                    pf[i, k, c] = 0.0
+                # not in contact: flag the slot (delta/2 = 0) and clear a stale history (reads are
+                # cheaper than writes: most slots are already clear)
+                pf[i, k, 9] = 0.0
+                if hist[i, k, 0] != 0.0 or hist[i, k, 1] != 0.0 or hist[i, k, 2] != 0.0:
+                    hist[i, k, 0] = 0.0
+                    hist[i, k, 1] = 0.0
+                    hist[i, k, 2] = 0.0
                 continue
             matj = IA[j, 1]
             e_star = pt[0, mati, matj]
@@ -455,7 +466,10 @@ def gather_pass(
         ty = 0.0
         tz = 0.0
         for k in range(nown[i]):
-            c = ri - pf[i, k, 9]
+            hd = pf[i, k, 9]
+            if hd == 0.0:  # slot not in contact (its other entries are stale)
+                continue
+            c = ri - hd
             fx += pf[i, k, 0]
             fy += pf[i, k, 1]
             fz += pf[i, k, 2]
@@ -465,7 +479,10 @@ def gather_pass(
         for q in range(nrev[i]):
             o = rev_o[i, q]
             s = rev_k[i, q]
-            c = ri - pf[o, s, 9]
+            hd = pf[o, s, 9]
+            if hd == 0.0:
+                continue
+            c = ri - hd
             fx -= pf[o, s, 0]
             fy -= pf[o, s, 1]
             fz -= pf[o, s, 2]
@@ -487,9 +504,7 @@ def gather_pass(
             )
             delta = ri - dist
             if delta <= 0.0 or dist < -ri:
-                whist[i, w, 0] = 0.0
-                whist[i, w, 1] = 0.0
-                whist[i, w, 2] = 0.0
+                _clear3(whist, i, w)
                 continue
             a, b, cc, d, e, f = wall_contact(
                 x, y, z, vx, vy, vz, wx, wy, wz, ri, m, inv_i, matp,
@@ -510,9 +525,7 @@ def gather_pass(
             ax_ = qx * ux + qy * uy + qz * uz
             hw = npl + w
             if ax_ < cyls[w, 10] or ax_ > cyls[w, 11]:
-                whist[i, hw, 0] = 0.0
-                whist[i, hw, 1] = 0.0
-                whist[i, hw, 2] = 0.0
+                _clear3(whist, i, hw)
                 continue
             rx, ry, rz = qx - ax_ * ux, qy - ax_ * uy, qz - ax_ * uz
             s = math.sqrt(rx * rx + ry * ry + rz * rz)
@@ -524,9 +537,7 @@ def gather_pass(
                 delta = ri - (s - rc)
                 sgn = -1.0
             if delta <= 0.0 or s == 0.0 or delta > 2.0 * ri:
-                whist[i, hw, 0] = 0.0
-                whist[i, hw, 1] = 0.0
-                whist[i, hw, 2] = 0.0
+                _clear3(whist, i, hw)
                 continue
             nx, ny, nz = sgn * rx / s, sgn * ry / s, sgn * rz / s
             om = cyls[w, 8]
@@ -558,18 +569,14 @@ def gather_pass(
                 tri = tri_x[q]
                 tri_tmp[i, k, 4] = -1.0
                 if not (mesh_par[mesh, 13] <= t < mesh_par[mesh, 14]):
-                    thist[i, k, 0] = 0.0
-                    thist[i, k, 1] = 0.0
-                    thist[i, k, 2] = 0.0
+                    _clear3(thist, i, k)
                     continue
                 qx, qy, qz = _tri_periodic_point(x, y, z, tri, dom, per)
                 cpx, cpy, cpz, feat = closest_point_triangle(qx, qy, qz, tri)
                 ddx, ddy, ddz = cpx - qx, cpy - qy, cpz - qz
                 dist = math.sqrt(ddx * ddx + ddy * ddy + ddz * ddz)
                 if dist >= ri or dist == 0.0:
-                    thist[i, k, 0] = 0.0
-                    thist[i, k, 1] = 0.0
-                    thist[i, k, 2] = 0.0
+                    _clear3(thist, i, k)
                     continue
                 tri_tmp[i, k, 0] = cpx
                 tri_tmp[i, k, 1] = cpy

@@ -340,7 +340,7 @@ class Simulation:
         omega: np.ndarray | None = None,
     ) -> np.ndarray:
         """Add spheres; returns their persistent ids. Overlaps are not checked."""
-        pos = np.atleast_2d(np.asarray(pos, float))
+        pos = np.array(pos, dtype=float, ndmin=2)
         if pos.ndim != 2 or pos.shape[1] != 3:
             raise ValueError(f"pos must have shape (k, 3), got {pos.shape}")
         k = pos.shape[0]
