@@ -65,6 +65,8 @@ def test_cli_build_and_simulate(tmp_path, capsys):
         == 0
     )
     assert json.loads(capsys.readouterr().out)["rtd_validation"]["against"] == "DEM transit times"
+    tw = tmp_path / "transit_w.npz"  # the recording window stored with the transit times
+    np.savez(tw, transit_s=np.load(tt)["transit_s"], window_s=20.0)
     assert (
         main(
             [
@@ -74,9 +76,7 @@ def test_cli_build_and_simulate(tmp_path, capsys):
                 "--out",
                 str(model),
                 "--transit-times",
-                str(tt),
-                "--transit-window",
-                "20",
+                str(tw),
                 "--rsd-source",
                 "compartments",
             ]

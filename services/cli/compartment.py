@@ -86,8 +86,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--transit-window",
         type=float,
         default=None,
-        help="recording window (s) of the DEM transit times: the model RTD is censored to the "
-        "transits that fit in it before the comparison",
+        help="recording window (s) of the DEM transit times (default: 'window_s' of the npz "
+        "if present): the model RTD is censored to the transits that fit in it",
     )
     b.add_argument(
         "--surrogate",
@@ -157,9 +157,13 @@ def cmd_build(args: argparse.Namespace) -> int:
 
     try:
         fields = load_fields(args.fields)
-        dem_samples = (
-            _load_transit_times(args.transit_times) if args.transit_times is not None else None
+        dem_samples, dem_window = (
+            _load_transit_times(args.transit_times)
+            if args.transit_times is not None
+            else (None, None)
         )
+        if args.transit_window is None:
+            args.transit_window = dem_window
         variables = tuple(v.strip() for v in args.variables.split(",") if v.strip())
         t0 = time.perf_counter()
         model = CompartmentModel(
@@ -275,8 +279,9 @@ def cmd_build(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_transit_times(path: Path) -> np.ndarray:
-    """Transit times (s) from a .npy array or an .npz holding ``transit_s``."""
+def _load_transit_times(path: Path) -> tuple[np.ndarray, float | None]:
+    """Transit times (s) from a .npy array or an .npz holding ``transit_s`` (and optionally
+    ``window_s``, the length of the recording window)."""
     if not path.exists():
         raise ValueError(f"transit-times file {str(path)!r} does not exist")
     data = np.load(path, allow_pickle=False)
@@ -284,8 +289,9 @@ def _load_transit_times(path: Path) -> np.ndarray:
         with data:
             if "transit_s" not in data.files:
                 raise ValueError(f"{path}: key 'transit_s' missing (keys: {data.files})")
-            return np.asarray(data["transit_s"], dtype=float)
-    return np.asarray(data, dtype=float)
+            window = float(data["window_s"]) if "window_s" in data.files else None
+            return np.asarray(data["transit_s"], dtype=float), window
+    return np.asarray(data, dtype=float), None
 
 
 def _cell_grid_rsd(fields, cells, args, t_mix: np.ndarray) -> np.ndarray:
