@@ -257,7 +257,7 @@ def run_full_twin_demo(
             timings["replay_wall_s"] = rp.wall_s
             last_t = rec.messages[-1].t if rec.messages else 0.0
             t_wait = time.perf_counter()
-            while time.perf_counter() - t_wait < 30:
+            while time.perf_counter() - t_wait < 120:
                 h = tap.health.get("oos")
                 if h is not None and h.t >= last_t and (tap.pred and max(tap.pred) >= last_t - 1):
                     break

@@ -65,7 +65,7 @@ def test_up_status_alerts_and_clean_stop(config, tmp_path):
     )
     try:
         status = {}
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
             r = twin("status", "--config", str(config), "--json", "--timeout", "1.2")
             if r.returncode == 0:

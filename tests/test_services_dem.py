@@ -36,7 +36,7 @@ def dem_run(tmp_path_factory):
     out: dict = {}
     sup = Supervisor(spec).start()
     try:
-        assert sup.wait_ready(60)
+        assert sup.wait_ready(120)
         s = open_session(spec.client_bus())
 
         def on(sample: zenoh.Sample) -> None:

@@ -31,15 +31,15 @@ def test_hung_service_is_killed_and_restarted(tmp_path):
     spec = LineSpec.model_validate(data)
     sup = Supervisor(spec, liveliness_timeout_s=1.0, backoff_s=0.2).start()
     try:
-        assert sup.wait_ready(60)
+        assert sup.wait_ready(120)
         pid = sup.pids()["blender"]
         os.kill(pid, signal.SIGSTOP)
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + 60
         while time.monotonic() < deadline and sup.children["blender"].restarts == 0:
             time.sleep(0.1)
         assert sup.children["blender"].restarts == 1
         assert sup.children["blender"].exit_codes == [-signal.SIGKILL]
-        assert sup.wait_ready(60)
+        assert sup.wait_ready(120)
         assert sup.pids()["blender"] not in (None, pid)
     finally:
         codes = sup.stop()
