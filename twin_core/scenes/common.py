@@ -47,14 +47,19 @@ def surface_samples(meshes: list[TriMesh], spacing: float) -> np.ndarray:
     """Points on the mesh surfaces no farther apart than about ``spacing`` (barycentric grids)."""
     pts = []
     for m in meshes:
-        for a, b, c in m.corners():
-            L = max(np.linalg.norm(b - a), np.linalg.norm(c - a), np.linalg.norm(c - b))
-            k = max(1, int(np.ceil(L / spacing)))
-            i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
-            sel = i + j <= k
-            u = i[sel] / k
-            v = j[sel] / k
-            pts.append(a + u[:, None] * (b - a) + v[:, None] * (c - a))
+        for tri in m.corners():
+            # origin at the vertex opposite the longest edge: the two edges from it span the
+            # triangle with about area / spacing^2 grid points even when it is long and thin
+            edges = [np.linalg.norm(tri[(k + 2) % 3] - tri[(k + 1) % 3]) for k in range(3)]
+            o = int(np.argmax(edges))
+            a, b, c = tri[o], tri[(o + 1) % 3], tri[(o + 2) % 3]
+            k1 = max(1, int(np.ceil(np.linalg.norm(b - a) / spacing)))
+            k2 = max(1, int(np.ceil(np.linalg.norm(c - a) / spacing)))
+            i, j = np.meshgrid(np.arange(k1 + 1), np.arange(k2 + 1), indexing="ij")
+            u = i / k1
+            v = j / k2
+            sel = u + v <= 1 + 1e-12
+            pts.append(a + u[sel][:, None] * (b - a) + v[sel][:, None] * (c - a))
     return np.vstack(pts) if pts else np.zeros((0, 3))
 
 
