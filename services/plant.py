@@ -38,6 +38,8 @@ _EVENT_KINDS = {
     "refill_start": "refill_start",
     "refill_stop": "refill_stop",
     "tracer_pulse": "tracer_pulse",
+    "disturbance": "disturbance",
+    "disturbance_end": "disturbance_end",
     "disturbance_start": "disturbance",
     "disturbance_stop": "disturbance_end",
 }

@@ -7,7 +7,9 @@ Thin shell over ``twin_core``: :class:`twin_core.online.TracerPulseDetector` fin
 deviations (the seed's mu + 3 sigma rule) and ``twin_core.rtd.fitting.fit`` fits the model
 (free scale: a concentration profile). The estimate is published on ``twin/<line>/rtd/estimate``
 (:class:`~schemas.messages.RtdEstimate`, parameters of the ``twin_core.rtd.models`` function
-named in ``model``); the blender adopts it when ``blender.adopt_rtd_estimates`` is set.
+named in ``model``); the blender adopts it when ``blender.adopt_rtd_estimates`` is set. A pulse
+found by itself (not announced) while a known feeder disturbance or hopper refill can reach the
+outlet (its events, plus the kernel length) is not fitted: it is not a tracer experiment.
 """
 
 from __future__ import annotations
@@ -90,6 +92,9 @@ class RtdService(LiveService):
         )
         self._last_t = -1.0
         self._pending: list[float] = []  # announced pulse times not yet reached
+        self._seen_events: set[tuple[str, str, float]] = set()
+        self._excluded: list[list[float]] = []  # inlet windows of known non-tracer excursions
+        self._open: dict[tuple[str, str], float] = {}
 
     def setup(self) -> None:
         line = self.spec.name
@@ -101,9 +106,24 @@ class RtdService(LiveService):
 
     def handle(self, key: str, msg: Any) -> None:
         if isinstance(msg, Event):
+            ident = (key, msg.kind, msg.t)
+            if ident in self._seen_events:
+                return  # the same event again (history after a restart)
+            self._seen_events.add(ident)
             if msg.kind == "tracer_pulse" and msg.component in (None, self.spec.sensor.component):
                 self._pending.append(msg.t)
+                self._pending.sort()
                 self.counters.inc("tracer_events")
+            elif msg.kind in ("disturbance", "refill_start"):
+                self._open[(key, msg.kind)] = msg.t
+                end = msg.t + (msg.duration_s or 0.0)
+                self._excluded.append([msg.t, end if msg.duration_s else float("inf")])
+            elif msg.kind in ("disturbance_end", "refill_stop"):
+                start_kind = "disturbance" if msg.kind == "disturbance_end" else "refill_start"
+                t0 = self._open.pop((key, start_kind), None)
+                for w in self._excluded:
+                    if w[0] == t0 and w[1] == float("inf"):
+                        w[1] = msg.t
             return
         if msg.t <= self._last_t or msg.quality == "bad":
             return
@@ -112,7 +132,16 @@ class RtdService(LiveService):
             self.detector.announce(self._pending.pop(0))
         seg = self.detector.push(msg.t, msg.concentration_pct_w_w)
         if seg is not None:
+            if not seg.announced and self._disturbed(float(seg.t[0]), float(seg.t[-1])):
+                self.counters.inc("pulses_skipped_disturbance")
+                return
             self.fit_and_publish(seg)
+
+    def _disturbed(self, a: float, b: float) -> bool:
+        """Whether a known feeder disturbance or refill (its inlet window plus the blender's
+        kernel length) overlaps [a, b]: such an excursion is not a tracer pulse."""
+        lag = self.spec.blender.kernel_s
+        return any(w0 <= b and a <= w1 + lag for w0, w1 in self._excluded)
 
     def fit_and_publish(self, seg: TracerSegment) -> None:
         try:
