@@ -106,7 +106,9 @@ class OosSettings(StrictModel):
     hysteresis_pct_w_w: deadband inside the limits; inlet_detect_pct_w_w: inlet composition
     deviation that starts a feeder-disturbance episode (the funnel decides if it matters);
     inlet_n_on / inlet_n_off: debounce of that detector; lot_lower / lot_upper: F(t) quantiles of
-    the lot boundaries (seed ch. 6: 0.5 % / 99.5 %); use_funnel: flag feeder disturbances early.
+    the lot boundaries (seed ch. 6: 0.5 % / 99.5 %); use_funnel: flag feeder disturbances early;
+    stall_release_s: how long a stalled input stream (e.g. the blender down) may hold the
+    diverter's decisions back before it decides on the streams present.
     """
 
     n_on: int = Field(3, ge=1)
@@ -118,6 +120,9 @@ class OosSettings(StrictModel):
     lot_lower: float = Field(0.005, gt=0.0, lt=0.5)
     lot_upper: float = Field(0.995, gt=0.5, lt=1.0)
     use_funnel: bool = True
+    stall_release_s: Positive = Field(
+        10.0, description="wall seconds a stalled input stream may hold decisions back"
+    )
 
 
 class RtdSettings(StrictModel):

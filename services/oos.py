@@ -18,6 +18,10 @@ Thin shell over :class:`twin_core.online.OosDecider` (one per specified componen
   ``twin/<line>/divert/command`` (``<alert>.open`` as soon as an episode is known, early for
   feeder disturbances; ``<alert>.final`` with the final window).
 
+If one input stream stalls (the blender down) while the others keep coming, decisions are held
+back (deterministic order) for at most ``oos.stall_release_s`` wall seconds, then made on the streams
+present (``degraded_releases``): a dead model never blocks a measured OOS alert.
+
 An ``Event`` of kind ``note`` with detail ``end-of-stream`` on ``twin/<line>/plant/replay/event``
 closes what is open (end of a replay). Restart: inputs come back from the publishers' history,
 the decisions are recomputed, and outputs already published (ids in the run's output log) are
@@ -27,6 +31,7 @@ not sent again.
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any
 
 import numpy as np
@@ -114,6 +119,8 @@ class OosCore:
         self.tracer = TracerInjector(dt)
         self.m_nom = sum(f.setpoint_kg_h for f in spec.feeders)
         self._held: tuple[float, dict[str, float]] | None = None
+        #: wall time of the last release of the merge (None before anything was pending)
+        self.last_release: float | None = None
         self.inlet_lead_s = INLET_LEAD_TICKS * dt
         self._pulse_ts: set[float] = set()
         self._last: dict[tuple[str, str], float] = {}
@@ -129,6 +136,8 @@ class OosCore:
 
     def _process(self, released: list[tuple[str, float, Any]]) -> list[DiverterOutput]:
         out: list[DiverterOutput] = []
+        if released:
+            self.last_release = time.monotonic()
         for stream, t, item in released:
             if stream == "inlet":
                 t_in, xs = item
@@ -268,6 +277,21 @@ class OosService(LiveService):
         else:
             return
         self.emit(outs)
+        core = self.core
+        if not len(core.merger):
+            return
+        now = time.monotonic()
+        if core.last_release is None:
+            core.last_release = now  # the clock starts with the first pending input
+        elif now - core.last_release > self.spec.oos.stall_release_s:
+            # an input stream (e.g. the blender's predictions) has stalled for long: decide on
+            # what is there rather than hold measured OOS decisions back (counted, logged)
+            self.counters.inc("degraded_releases")
+            log.warning(
+                "oos: a stream stalled for %.0f s; deciding on the streams present",
+                self.spec.oos.stall_release_s,
+            )
+            self.emit(core._process(core.merger.release_all()))
 
     def emit(self, outs: list[DiverterOutput]) -> None:
         for o in outs:

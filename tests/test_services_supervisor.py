@@ -44,3 +44,70 @@ def test_hung_service_is_killed_and_restarted(tmp_path):
     finally:
         codes = sup.stop()
     assert codes == {"blender": 0}
+
+
+def test_a_dead_model_does_not_block_measured_oos_decisions(tmp_path):
+    """The diverter expects the blender's predictions (configured) but the blender never runs:
+    after ``oos.stall_release_s`` it decides on the feeder flows and the NIR, during the run."""
+    import threading
+
+    import zenoh
+
+    from schemas.messages import OosAlert, ServiceHealth
+    from services.bus import open_session
+    from services.plant import Replayer, simulate_messages
+
+    data = LineSpec.from_file(CONFIG).model_dump()
+    data.update(
+        bus={"mode": "router", "listen": [f"tcp/127.0.0.1:{free_port()}"], "connect": []},
+        services=["blender", "oos"],
+        state_dir=str(tmp_path),
+    )
+    data["oos"]["stall_release_s"] = 2.0
+    spec = LineSpec.model_validate(data)
+    _, msgs = simulate_messages(
+        spec,
+        600.0,
+        seed=5,
+        disturbances=[{"feeder": "api", "t_s": 100.0, "delta_kg_h": 0.6, "duration_s": 30.0}],
+    )
+    items = [(k, m.t, m.to_json_bytes()) for k, m in msgs]
+    got: list[tuple[float, OosAlert]] = []
+    health: dict[str, ServiceHealth] = {}
+    lock = threading.Lock()
+    sup = Supervisor(spec, services=["oos"]).start()  # no blender
+    try:
+        assert sup.wait_ready(120)
+        s = open_session(spec.client_bus())
+
+        def on_alert(sample: zenoh.Sample) -> None:
+            with lock:
+                got.append(
+                    (time.monotonic(), OosAlert.model_validate_json(sample.payload.to_bytes()))
+                )
+
+        def on_health(sample: zenoh.Sample) -> None:
+            h = ServiceHealth.model_validate_json(sample.payload.to_bytes())
+            health[h.service] = h
+
+        subs = [
+            s.declare_subscriber(
+                "twin/line1/oos/alert", zenoh.handlers.Callback(on_alert, lambda: None)
+            ),
+            s.declare_subscriber(
+                "twin/line1/service/oos/health", zenoh.handlers.Callback(on_health, lambda: None)
+            ),
+        ]
+        time.sleep(0.5)
+        with Replayer(spec, items, speed=90.0, install_signal_handlers=False) as rp:
+            rp.replay()
+            t_end = time.monotonic()
+            time.sleep(1.5)
+        for sub in subs:
+            sub.undeclare()
+        s.close()
+    finally:
+        sup.stop()
+    assert [a.alert_id for _, a in got] == ["line1.api.feed-000000100000"]
+    assert got[0][0] < t_end  # decided while the replay was still running
+    assert health["oos"].counters.get("degraded_releases", 0) >= 1
