@@ -103,7 +103,7 @@ class Simulation:
         self._n = 0
         self._forces_stale = True
         self._warned_resolution = False
-        self._alloc(16, kown=16, krev=16, ktri=8)
+        self._alloc(16, kown=8, krev=8, ktri=4)
         self._planes = np.zeros((0, 7))
         self._cyls = np.zeros((0, 12))
         self._whist = np.zeros((16, 0, 3))
@@ -699,7 +699,7 @@ class Simulation:
             self._grow(int(status), int(needed))
 
     def _grow(self, status: int, needed: int) -> None:
-        extra = max(4, needed // 4)
+        extra = max(2, needed // 8)  # lists stay narrow: less memory traffic per step
         if status == 1:
             self._resize(kown=needed + extra)
         elif status == 2:
@@ -800,7 +800,7 @@ class Simulation:
                 if el > 0:
                     chunk_max = int(min(max(chunk * 0.2 / el, 1), 100000))
                 if bar is not None:
-                    bar.update(round(k * dt, 9))
+                    bar.update(round(done * dt, 9) - bar.n)
                     bar.set_postfix_str(f"{n0 * k / max(el, 1e-12):.3g} particle-steps/s")
                 if callback is not None and done % cb_every == 0:
                     callback(self)
