@@ -1,8 +1,23 @@
-"""Shared pytest configuration."""
+"""Shared pytest configuration.
+
+Each pytest-xdist worker gets its own numba cache directory: two processes compiling the same
+cached function into one ``__pycache__`` at once can leave a corrupt cache entry on a fresh
+clone. Set before any test module imports numba.
+"""
 
 import os
+from pathlib import Path
 
-import matplotlib
+os.environ.setdefault(
+    "NUMBA_CACHE_DIR",
+    str(
+        Path(__file__).resolve().parent.parent
+        / ".numba_cache"
+        / os.environ.get("PYTEST_XDIST_WORKER", "main")
+    ),
+)
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
-os.environ.setdefault("MPLBACKEND", "Agg")
