@@ -154,7 +154,7 @@ def over_bus(spec: LineSpec, n: int) -> None:
             for i in range(n)
             for f in spec.feeders
         ]
-        time.sleep(1.0)
+        time.sleep(1.5)
         t0 = time.perf_counter()
         for fid, p in msgs:
             pubs[fid].put_raw(p)

@@ -87,7 +87,7 @@ def main() -> int:
         nir = plant.history_publisher(
             keys.measured_concentration(spec.name, "nir1"), MeasuredConcentration
         )
-        time.sleep(1.0)
+        time.sleep(1.5)
         sent: dict[float, float] = {}
         n = int(a.seconds / dt)
         t_wall0 = time.perf_counter()

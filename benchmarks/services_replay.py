@@ -64,7 +64,7 @@ def main() -> int:
     try:
         assert sup.wait_ready(120), sup.alive
         tap = _Tap(spec, echo=False)
-        time.sleep(0.5)
+        time.sleep(1.5)
         last_t = rec.messages[-1].t
         with Replayer(
             spec, rec, speed=float("inf"), feeder_unit="loadcell", install_signal_handlers=False
@@ -118,7 +118,9 @@ def main() -> int:
         c = {
             k: v
             for k, v in h.counters.items()
-            if k.startswith(("received", "published", "rejected"))
+            if k.startswith(
+                ("received", "published", "rejected", "degraded", "caught", "handler", "alerts")
+            )
         }
         print(f"  {name:<9} {c}")
     return 0 if not dropped else 1

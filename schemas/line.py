@@ -164,6 +164,11 @@ class LineSpec(StrictModel):
         "replay",
         description="replay: pass recorded load-cell flows through; simulate: run the LIW model",
     )
+    inlet_max_lag_s: Positive = Field(
+        600.0,
+        description="plant time one feeder's flows may run ahead of another's before the missing "
+        "value is held (a lost message); large, so that arrival order never changes a result",
+    )
     history_samples: int = Field(
         20000, ge=1, description="samples per key cached by publishers for late/restarted peers"
     )

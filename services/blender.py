@@ -70,7 +70,9 @@ class BlenderPredictor:
         self.components = spec.components
         self.comp_names = sorted(set(self.components.values()))
         self.e = blender_kernel(spec) if e is None else np.asarray(e, float)
-        self.aligner = InletAligner(list(self.components), spec.dt_s)
+        self.aligner = InletAligner(
+            list(self.components), spec.dt_s, max_lag=max(1, int(spec.inlet_max_lag_s / spec.dt_s))
+        )
         self.conv: dict[str, StreamingConvolver] | None = None
         self.tracer = TracerInjector(spec.dt_s)
 

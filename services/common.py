@@ -171,9 +171,12 @@ class LiveService(Service):
     """
 
     idle_s: float = 0.2
-    #: seconds after start during which inputs (history and live) are collected, then handled
-    #: in plant-time order: the catch-up of a (re)started service
+    #: catch-up of a (re)started service: inputs (history and live) are collected for at least
+    #: ``catchup_s``, until ``catchup_quiet_s`` without input or ``catchup_max_s``, then handled
+    #: in plant-time order
     catchup_s: float = 1.0
+    catchup_quiet_s: float = 0.3
+    catchup_max_s: float = 10.0
 
     def __init__(self, name: str, spec: LineSpec, *, install_signal_handlers: bool = True):
         super().__init__(
@@ -267,17 +270,24 @@ class LiveService(Service):
         return 0
 
     def _catch_up(self) -> None:
-        """Collect inputs for ``catchup_s``, then handle them sorted by plant time."""
-        end = time.monotonic() + self.catchup_s
+        """Collect inputs (history and live) for at least ``catchup_s``, until the inbox has been
+        quiet for ``catchup_quiet_s`` (history delivered) or ``catchup_max_s`` has passed, then
+        handle them sorted by plant time."""
+        t0 = time.monotonic()
         batch: list[tuple[float, int, str, Any]] = []
         while not self.stopping:
-            left = end - time.monotonic()
-            if left <= 0:
+            now = time.monotonic()
+            if now - t0 >= self.catchup_max_s:
                 break
+            wait = self.catchup_quiet_s
+            if now - t0 < self.catchup_s:
+                wait = max(wait, self.catchup_s - (now - t0))
             try:
-                key, msg = self.inbox.get(timeout=left)
+                key, msg = self.inbox.get(timeout=wait)
             except queue.Empty:
-                break
+                if time.monotonic() - t0 >= self.catchup_s:
+                    break
+                continue
             batch.append((float(getattr(msg, "t", 0.0)), len(batch), key, msg))
         batch.sort(key=lambda x: (x[0], x[1]))
         self.counters.inc("caught_up", len(batch))

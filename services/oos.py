@@ -23,7 +23,9 @@ back (deterministic order) for at most ``oos.stall_release_s`` wall seconds, the
 present (``degraded_releases``): a dead model never blocks a measured OOS alert.
 
 An ``Event`` of kind ``note`` with detail ``end-of-stream`` on ``twin/<line>/plant/replay/event``
-closes what is open (end of a replay). Restart: inputs come back from the publishers' history,
+(end of a replay, at the plant time of the last sample) closes what is open once every input
+stream has reached that time (flows and predictions come through other services, later than
+the event), or after ``idle_release_s`` of silence. Restart: inputs come back from the publishers' history,
 the decisions are recomputed, and outputs already published (ids in the run's output log) are
 not sent again.
 """
@@ -31,6 +33,7 @@ not sent again.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from typing import Any
 
@@ -115,10 +118,14 @@ class OosCore:
         self.use_predicted = "blender" in spec.services
         streams = ["inlet", "measured"] + (["predicted"] if self.use_predicted else [])
         self.merger = WatermarkMerger(streams)
-        self.aligner = InletAligner([f.id for f in spec.feeders], dt)
+        self.aligner = InletAligner(
+            [f.id for f in spec.feeders], dt, max_lag=max(1, int(spec.inlet_max_lag_s / dt))
+        )
         self.tracer = TracerInjector(dt)
         self.m_nom = sum(f.setpoint_kg_h for f in spec.feeders)
         self._held: tuple[float, dict[str, float]] | None = None
+        self.end_t: float | None = None
+        self.finished = False
         #: wall time of the last release of the merge (None before anything was pending)
         self.last_release: float | None = None
         self.inlet_lead_s = INLET_LEAD_TICKS * dt
@@ -196,7 +203,28 @@ class OosCore:
             return []
         return self._process(self.merger.push("predicted", t, (component, c)))
 
+    def announce_end(self, t_end: float) -> list[DiverterOutput]:
+        """The plant's last sample is at ``t_end``: finish once every stream has reached it
+        (the streams through the feeder and blender services arrive later than the event)."""
+        self.end_t = t_end
+        return self.finish_if_complete()
+
+    def finish_if_complete(self) -> list[DiverterOutput]:
+        if self.end_t is None or self.finished:
+            return []
+        slack = max(self.spec.dt_s, self.spec.sensor.sample_period_s)
+        last = dict(self.merger.last)
+        if self._held is not None:
+            last["inlet"] = self._held[0] + self.inlet_lead_s
+        if all(last.get(s, -math.inf) >= self.end_t - slack for s in self.merger.order):
+            return self.end_of_stream()
+        return []
+
     def end_of_stream(self) -> list[DiverterOutput]:
+        """Close everything: release what the merge holds and close open episodes."""
+        if self.finished:
+            return []
+        self.finished = True
         out = self._push_inlet()
         out += self._process(self.merger.release_all())
         for d in self.deciders.values():
@@ -267,7 +295,7 @@ class OosService(LiveService):
         elif isinstance(msg, PredictedConcentration):
             outs = self.core.predicted(msg.component, msg.t, msg.concentration_pct_w_w)
         elif isinstance(msg, Event) and msg.kind == "note" and msg.detail == END_OF_STREAM:
-            outs = self.core.end_of_stream()
+            outs = self.core.announce_end(msg.t)
         elif isinstance(msg, Event) and msg.kind == "tracer_pulse" and msg.mass_kg:
             comp = msg.component or msg.source
             if comp in self.spec.components.values():
@@ -277,6 +305,8 @@ class OosService(LiveService):
         else:
             return
         self.emit(outs)
+        if self.core.end_t is not None:
+            self.emit(self.core.finish_if_complete())
         core = self.core
         if not len(core.merger):
             return
@@ -306,8 +336,11 @@ class OosService(LiveService):
     def idle(self) -> None:
         # a stream that went quiet (e.g. no blender) must not hold decisions back forever
         self._idle += self.idle_s
-        if self._idle >= self.idle_release_s and len(self.core.merger):
-            self.emit(self.core._process(self.core.merger.release_all()))
+        if self._idle >= self.idle_release_s:
+            if self.core.end_t is not None:
+                self.emit(self.core.end_of_stream())  # a stream never reached the end
+            elif len(self.core.merger):
+                self.emit(self.core._process(self.core.merger.release_all()))
 
     def finish(self) -> None:
         self.log_ids.close()

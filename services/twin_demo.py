@@ -249,7 +249,7 @@ def run_full_twin_demo(
             raise RuntimeError(f"services not ready after 90 s: alive {sorted(sup.alive)}")
         timings["startup_s"] = time.perf_counter() - t0
         tap = _Tap(spec, echo)
-        time.sleep(0.3)
+        time.sleep(1.5)  # past the services' catch-up (>= 1 s after their token)
         with Replayer(
             spec, rec, speed=speed, feeder_unit="loadcell", install_signal_handlers=False
         ) as rp:

@@ -17,6 +17,8 @@ os.environ.setdefault(
     ),
 )
 os.environ.setdefault("MPLBACKEND", "Agg")
+# small dense products: threaded BLAS on a 2-core machine shared by two workers is far slower
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import matplotlib  # noqa: E402
 

@@ -112,7 +112,7 @@ def run_a(tmp_path_factory):
     try:
         assert sup.wait_ready(120), f"services not ready: alive {sup.alive}"
         col = Collector(spec)
-        time.sleep(0.5)
+        time.sleep(1.5)  # past the services' catch-up (>= 1 s after their token)
         with Replayer(
             spec, rec, speed=300.0, feeder_unit="loadcell", install_signal_handlers=False
         ) as rp:
@@ -136,6 +136,12 @@ def run_a(tmp_path_factory):
             killer_done.wait(60)
             # the restarted oos catches up from the publishers' history
             ok = wait_until(lambda: len(col.alerts) >= 2, 90)
+            if not ok:
+                Path("/tmp/smoke/dump.json").write_text(
+                    json.dumps({k: h.model_dump(mode="json") for k, h in col.health.items()})
+                    + "\n"
+                    + str(sup.run_dir)
+                )
             assert ok, (
                 col.alerts,
                 {k: (h.state, h.t, h.counters) for k, h in col.health.items()},
@@ -228,7 +234,7 @@ def run_b(tmp_path_factory):
     try:
         assert sup.wait_ready(120)
         col = Collector(spec)
-        time.sleep(0.5)
+        time.sleep(1.5)  # past the services' catch-up
         with Replayer(spec, rec, speed=math_inf(), install_signal_handlers=False) as rp:
             out["n_sent"] = rp.replay()
             assert wait_until(

@@ -98,7 +98,7 @@ def test_a_dead_model_does_not_block_measured_oos_decisions(tmp_path):
                 "twin/line1/service/oos/health", zenoh.handlers.Callback(on_health, lambda: None)
             ),
         ]
-        time.sleep(0.5)
+        time.sleep(1.5)  # past the catch-up
         with Replayer(spec, items, speed=90.0, install_signal_handlers=False) as rp:
             rp.replay()
             t_end = time.monotonic()
