@@ -161,3 +161,14 @@ def test_dataframe_columns(bed):
     df = compute_indices([f0, shuffled_frame(f0, 1)], "LI,VBBC", cfg)
     assert isinstance(df, pd.DataFrame)
     assert list(df.columns) == ["t", "LI", "VBBC", "VBBC_raw"]
+
+
+def test_lost_particles_are_refused_or_dropped_and_reported(bed):
+    f0, cfg = bed
+    keep = np.arange(len(f0.ids)) != 5
+    f1 = Frame(1.0, f0.ids[keep], f0.types[keep], f0.radii[keep], f0.positions[keep])
+    with pytest.raises(ValueError, match="same particle ids"):
+        compute_indices([f0, f1], ["LI"], cfg)
+    df = compute_indices([f0, f1], ["LI", "SI"], cfg, allow_lost=True)
+    assert df.attrs["dropped_particles"] == 1
+    assert len(df) == 2

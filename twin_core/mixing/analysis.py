@@ -13,6 +13,7 @@ import pandas as pd
 from twin_core.mixing.series import (
     INDEX_NAMES,
     MixingConfig,
+    _common_subset,
     _parse_indices,
     compute_indices,
     mixed_reference,
@@ -26,16 +27,24 @@ OSCILLATING = frozenset({"AH"})
 
 @dataclass
 class MixingAnalysis:
-    """Indices, normalised progress and T95 fits of one run."""
+    """Indices, normalised progress and T95 fits of one run.
+
+    ``progress`` is the curve the fits are made on (see ``normalize`` of :func:`analyze`);
+    ``progress_random`` is always the progress toward a random mixture of the same bed, and
+    ``final_vs_random`` its mean over the last part of the run (1 = as mixed as random).
+    """
 
     indices: pd.DataFrame
     progress: pd.DataFrame
     fits: dict[str, T95Fit]
+    progress_random: pd.DataFrame | None = None
+    final_vs_random: dict[str, float] | None = None
 
     def t95_table(self) -> pd.DataFrame:
         rows = [
             {"index": k, "model": f.model, "A": f.A, "gamma": f.gamma, "w": f.w,
-             "T95_s": f.t95, "R2": f.r2}
+             "T95_s": f.t95, "R2": f.r2,
+             "final_vs_random": (self.final_vs_random or {}).get(k, np.nan)}
             for k, f in self.fits.items()
         ]  # fmt: skip
         return pd.DataFrame(rows).set_index("index")
@@ -47,15 +56,39 @@ def analyze(
     indices: str | Sequence[str] = "all",
     smooth_window: int = 11,
     n_shuffles: int = 3,
+    allow_lost: bool = False,
+    normalize: str = "plateau",
+    tail_fraction: float = 0.2,
 ) -> MixingAnalysis:
     """Compute indices on ``frames`` (first frame = segregated start), normalise them to
     0..1 with the random-mixture reference of the first frame, and fit Eq. (29) (Eq. (30) for
-    AH) to the Savitzky-Golay smoothed progress of each index."""
+    AH) to the Savitzky-Golay smoothed progress of each index. ``allow_lost``: see
+    :func:`~twin_core.mixing.series.compute_indices`.
+
+    ``normalize="plateau"`` (default, the seed's 0-1 normalisation of each curve, 4.4.2) maps
+    the initial value to 0 and the mean of the last ``tail_fraction`` of the run to 1, so T95
+    is the time to 95 % of the approach to the steady state; ``normalize="random"`` maps the
+    random mixture of the same bed to 1 (a bed that stays less mixed than random then never
+    reaches 0.95). Both progress curves are kept in the result."""
+    if normalize not in ("plateau", "random"):
+        raise ValueError(f"normalize must be 'plateau' or 'random', got {normalize!r}")
+    if not 0.0 < tail_fraction < 1.0:
+        raise ValueError(f"tail_fraction must be in (0, 1), got {tail_fraction}")
     frames = list(frames)
     names = _parse_indices(indices)
+    dropped = 0
+    if allow_lost:
+        frames, dropped = _common_subset(frames)
     df = compute_indices(frames, names, config)
+    df.attrs["dropped_particles"] = dropped
     ref = mixed_reference(frames[0], names, config, n_shuffles=n_shuffles, seed=config.seed)
-    prog = mixing_progress(df, ref)
+    prog_random = mixing_progress(df, ref)
+    n_tail = max(1, int(round(tail_fraction * len(df))))
+    final = {n: float(prog_random[n].iloc[-n_tail:].mean()) for n in names if n in prog_random}
+    if normalize == "random":
+        prog = prog_random
+    else:
+        prog = mixing_progress(df, df.iloc[-n_tail:].mean())
     fits: dict[str, T95Fit] = {}
     for name in names:
         y = prog[name].to_numpy()
@@ -66,7 +99,7 @@ def analyze(
             fits[name] = fit_t95(prog["t"].to_numpy(), y, model, smooth_window)
         except (RuntimeError, ValueError):
             continue  # reported as missing in the table rather than guessed
-    return MixingAnalysis(df, prog, fits)
+    return MixingAnalysis(df, prog, fits, prog_random, final)
 
 
 def t95_by_speed(analyses: Mapping[float, MixingAnalysis]) -> pd.DataFrame:

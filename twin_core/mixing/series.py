@@ -94,10 +94,32 @@ def _aligned(frame, order_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     )
 
 
+def _common_subset(frames: list) -> tuple[list, int]:
+    """Frames restricted to the particle ids present in every frame, and the number dropped."""
+    common = np.asarray(frames[0].ids)
+    for f in frames[1:]:
+        common = np.intersect1d(common, np.asarray(f.ids))
+    out = []
+    for f in frames:
+        keep = np.isin(np.asarray(f.ids), common)
+        out.append(
+            Frame(float(f.t), np.asarray(f.ids)[keep], np.asarray(f.types)[keep],
+                  np.asarray(f.radii)[keep], np.asarray(f.positions)[keep])
+        )  # fmt: skip
+    return out, len(frames[0].ids) - len(common)
+
+
 def compute_indices(
-    frames: Iterable, indices: str | Sequence[str] = "all", config: MixingConfig | None = None
+    frames: Iterable,
+    indices: str | Sequence[str] = "all",
+    config: MixingConfig | None = None,
+    allow_lost: bool = False,
 ) -> pd.DataFrame:
     """All requested indices for every frame: a DataFrame with column ``t`` and one per index.
+
+    Every frame must hold the same particle ids. With ``allow_lost=True`` (DEM runs where a few
+    particles leave the domain) the indices are evaluated on the particles present in every
+    frame, and the number left out is reported in ``df.attrs["dropped_particles"]``.
 
     ``AH`` is along ``config.ah_axis``; ``AH_x``, ``AH_y``, ``AH_z`` give all three axes.
     ``VBBC`` is normalised by its maximum over the series (seed Eq. 8); ``VBBC_raw`` keeps
@@ -106,6 +128,11 @@ def compute_indices(
     if config is None:
         raise ValueError("config is required (at least a GridSpec)")
     names = _parse_indices(indices)
+    dropped = 0
+    if allow_lost:
+        frames = list(frames)
+        if frames:
+            frames, dropped = _common_subset(frames)
     frames = iter(frames)
     try:
         first = next(frames)
@@ -130,6 +157,7 @@ def compute_indices(
         df["VBBC_raw"] = df["VBBC"]
         peak = df["VBBC_raw"].max()
         df["VBBC"] = df["VBBC_raw"] / peak if peak > 0 else np.nan
+    df.attrs["dropped_particles"] = dropped
     return df
 
 
