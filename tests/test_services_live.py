@@ -136,12 +136,6 @@ def run_a(tmp_path_factory):
             killer_done.wait(60)
             # the restarted oos catches up from the publishers' history
             ok = wait_until(lambda: len(col.alerts) >= 2, 90)
-            if not ok:
-                Path("/tmp/smoke/dump.json").write_text(
-                    json.dumps({k: h.model_dump(mode="json") for k, h in col.health.items()})
-                    + "\n"
-                    + str(sup.run_dir)
-                )
             assert ok, (
                 col.alerts,
                 {k: (h.state, h.t, h.counters) for k, h in col.health.items()},
