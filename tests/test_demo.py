@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -109,12 +110,20 @@ def test_twin_demo_cli(tmp_path):
             "--as-fast-as-possible",
             "--capture",
             str(tmp_path / "cap.mcap"),
+            "--out",
+            str(tmp_path / "demo"),
         ],
         capture_output=True,
         text=True,
-        timeout=180,
+        timeout=400,
         cwd=ROOT,
     )
     assert r.returncode == 0, r.stdout + r.stderr
     assert "RESULT: capture equals source, message for message" in r.stdout
     assert (tmp_path / "cap.mcap").exists()
+    # step 2: the live twin on the same recording, with its report and figure
+    report = json.loads((tmp_path / "demo" / "report.json").read_text())
+    assert report["recording_status"].startswith("complete")
+    assert report["predictions"] > 1000 and report["duplicates_seen"] == 0
+    assert len(report["alerts"]) == 3  # one per tracer pulse of the bundled recording
+    assert (tmp_path / "demo" / "outlet.png").stat().st_size > 10_000
