@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -62,7 +63,7 @@ from twin_core.online import (
 log = logging.getLogger(__name__)
 
 END_OF_STREAM = "end-of-stream"
-#: the inlet stream enters the event-time merge this many ticks ahead of its plant time
+#: the inlet stream enters the event-time merge at least this many ticks ahead of its plant time
 INLET_LEAD_TICKS = 2
 
 
@@ -123,12 +124,24 @@ class OosCore:
         )
         self.tracer = TracerInjector(dt)
         self.m_nom = sum(f.setpoint_kg_h for f in spec.feeders)
-        self._held: tuple[float, dict[str, float]] | None = None
+        #: aligned inlet ticks not yet released (tracer events for them may still arrive)
+        self._held: deque[tuple[float, dict[str, float], float]] = deque()
         self.end_t: float | None = None
         self.finished = False
         #: wall time of the last release of the merge (None before anything was pending)
         self.last_release: float | None = None
-        self.inlet_lead_s = INLET_LEAD_TICKS * dt
+        # An outlet decision at t depends on the inlet only up to t - t(F = lot_lower), so an
+        # inlet tick can wait that long (less one tick) before it enters the merge at no cost in
+        # decision latency: a tracer event may arrive up to ``inlet_hold_s`` of plant time after
+        # the flows of its tick (other route, other publisher) and still count in its own tick.
+        f = np.cumsum(e) * dt
+        t_lo = float(np.argmax(f >= o.lot_lower)) * dt if f[-1] >= o.lot_lower else 0.0
+        lead_ticks = max(INLET_LEAD_TICKS, int(math.floor(t_lo / dt + 1e-9)) - 1)
+        self.inlet_lead_s = lead_ticks * dt
+        self.inlet_hold_s = (lead_ticks - 1) * dt
+        #: wall seconds an inlet tick is also held after its flows arrived (0: plant time only):
+        #: a sample the bus missed reaches a subscriber one publisher heartbeat later
+        self.inlet_grace_s = 0.0
         self._pulse_ts: set[float] = set()
         self._last: dict[tuple[str, str], float] = {}
         self.duplicates = 0
@@ -162,18 +175,31 @@ class OosCore:
             return []
         out: list[DiverterOutput] = []
         for tt, flows in self.aligner.push(feeder, t, flow_kg_h):
+            self._held.append((tt, flows, time.monotonic()))
+        return out + self.release_inlet()
+
+    def release_inlet(self) -> list[DiverterOutput]:
+        """Release the held inlet ticks that are ``inlet_hold_s`` of plant time older than the
+        newest and have waited ``inlet_grace_s`` wall seconds since their flows arrived."""
+        out: list[DiverterOutput] = []
+        now = time.monotonic()
+        while self._held:
+            t0, _, arrived = self._held[0]
+            if self._held[-1][0] - t0 < self.inlet_hold_s - 1e-9:
+                break
+            if now - arrived < self.inlet_grace_s:
+                break
             out += self._push_inlet()
-            self._held = (tt, flows)
         return out
 
     def _push_inlet(self) -> list[DiverterOutput]:
-        """Release the held inlet tick (held one tick so that a tracer event arriving after the
-        flows of its tick still counts), merged at t + INLET_LEAD_S: an outlet decision at t
-        depends on the inlet only up to t - t(F=0.5 %), so this costs no latency."""
-        if self._held is None:
+        """Release the oldest held inlet tick, merged at t + ``inlet_lead_s``. Ticks are held
+        ``inlet_hold_s`` of plant time so that a tracer event arriving after the flows of its
+        tick still counts there; an outlet decision at t depends on the inlet only up to
+        t - t(F = lot_lower), so this costs no decision latency."""
+        if not self._held:
             return []
-        tt, flows = self._held
-        self._held = None
+        tt, flows, _ = self._held.popleft()
         mass: dict[str, float] = {}
         for f, q in flows.items():
             c = self.spec.components[f]
@@ -214,19 +240,25 @@ class OosCore:
             return []
         slack = max(self.spec.dt_s, self.spec.sensor.sample_period_s)
         last = dict(self.merger.last)
-        if self._held is not None:
-            last["inlet"] = self._held[0] + self.inlet_lead_s
+        if self._held:
+            last["inlet"] = self._held[-1][0] + self.inlet_lead_s
         if all(last.get(s, -math.inf) >= self.end_t - slack for s in self.merger.order):
             return self.end_of_stream()
         return []
+
+    def release_all(self) -> list[DiverterOutput]:
+        """Decide on what is there (a stalled stream): the held inlet ticks, then the merge."""
+        out: list[DiverterOutput] = []
+        while self._held:
+            out += self._push_inlet()
+        return out + self._process(self.merger.release_all())
 
     def end_of_stream(self) -> list[DiverterOutput]:
         """Close everything: release what the merge holds and close open episodes."""
         if self.finished:
             return []
         self.finished = True
-        out = self._push_inlet()
-        out += self._process(self.merger.release_all())
+        out = self.release_all()
         for d in self.deciders.values():
             out += d.flush()
         return out
@@ -262,10 +294,15 @@ class OosService(LiveService):
     """See the module docstring."""
 
     idle_release_s = 2.0
+    #: wall seconds every inlet tick waits for late tracer events (two publisher heartbeats)
+    inlet_grace_s = 1.0
 
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
         super().__init__("oos", spec, **kwargs)
         self.core = OosCore(spec)
+        # fast replays: a tracer event the bus delivers late (recovered on the publisher's
+        # 0.5 s miss-detection heartbeat) must still find its inlet tick unreleased
+        self.core.inlet_grace_s = self.inlet_grace_s
         self.log_ids = OutputLog(self.state_path / "oos.published")
         self._idle = 0.0
 
@@ -304,7 +341,7 @@ class OosService(LiveService):
             return
         else:
             return
-        self.emit(outs)
+        self.emit(outs + (self.core.release_inlet() if not self.core.finished else []))
         if self.core.end_t is not None:
             self.emit(self.core.finish_if_complete())
         core = self.core
@@ -321,7 +358,7 @@ class OosService(LiveService):
                 "oos: a stream stalled for %.0f s; deciding on the streams present",
                 self.spec.oos.stall_release_s,
             )
-            self.emit(core._process(core.merger.release_all()))
+            self.emit(core.release_all())
 
     def emit(self, outs: list[DiverterOutput]) -> None:
         for o in outs:
@@ -339,8 +376,9 @@ class OosService(LiveService):
         if self._idle >= self.idle_release_s:
             if self.core.end_t is not None:
                 self.emit(self.core.end_of_stream())  # a stream never reached the end
-            elif len(self.core.merger):
-                self.emit(self.core._process(self.core.merger.release_all()))
+            elif len(self.core.merger) or self.core._held:
+                # everything went quiet: release the held inlet ticks too
+                self.emit(self.core.release_all())
 
     def finish(self) -> None:
         self.log_ids.close()

@@ -191,6 +191,8 @@ class Replayer(LiveService):
         self.wall_s = 0.0
         self.first_t: float | None = None
         self.last_t: float | None = None
+        #: wall seconds between declaring the publishers and the first sample
+        self.declare_settle_s = 0.5
 
     def _pub(self, key: str) -> HistoryPublisher:
         pub = self.pubs.get(key)
@@ -208,11 +210,29 @@ class Replayer(LiveService):
         from services.oos import END_OF_STREAM, replay_event_key
         from services.recording import Recording, replay
 
-        def publish(key: str, payload: bytes) -> None:
+        def wire_key(key: str) -> str:
             if self.feeder_unit != "feeder" and key.endswith("/flow"):
-                key = remap_unit(key, "feeder", self.feeder_unit)
-            self._pub(key).put_raw(payload)
+                return remap_unit(key, "feeder", self.feeder_unit)
+            return key
+
+        def publish(key: str, payload: bytes) -> None:
+            self._pub(wire_key(key)).put_raw(payload)
             self.sent += 1
+
+        # Declare every publisher before the first sample: a publisher declared on first use
+        # (e.g. the first tracer event, minutes into a run) is found by the subscribers only
+        # through late-publisher detection and a history query, and its samples then reach them
+        # after samples of the same plant time on the other keys.
+        if isinstance(self.items, Recording):
+            first_keys = list(dict.fromkeys(m.key for m in self.items.messages))
+        elif isinstance(self.items, (list, tuple)):
+            first_keys = list(dict.fromkeys(k for k, _, _ in self.items))
+        else:
+            first_keys = []
+        for key in first_keys + [replay_event_key(self.spec.name)]:
+            self._pub(wire_key(key))
+        if first_keys and self.pubs:
+            time.sleep(self.declare_settle_s)  # let the subscribers' routes to them settle
 
         t_wall0 = time.perf_counter()
         if isinstance(self.items, Recording):

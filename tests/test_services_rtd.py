@@ -332,3 +332,43 @@ def test_diverter_decisions_do_not_depend_on_arrival_order():
             arrivals += [(a, i, name, m) for i, (a, m) in enumerate(zip(at, items))]
         arrivals.sort(key=lambda z: (z[0], z[1]))
         assert decide([(n, m) for _, _, n, m in arrivals]) == ref
+
+
+def test_a_late_tracer_event_counts_in_its_own_tick():
+    """The tracer pulse of seed ch. 6 announced after later flows (12 s of plant time late, within
+    the no-latency hold t(F = 0.5 %) of Table 6.2's E(t); or 120 s late within the wall-time
+    grace of a fast replay) gives exactly the outputs of the in-order run."""
+    from schemas import keys
+    from schemas.messages import Event, FeederFlow, MeasuredConcentration
+    from services.oos import OosCore
+    from services.plant import run_messages
+    from twin_core.plant import TracerPulse, simulate_line
+
+    spec = spec_with(services=["oos"])
+    cfg = spec.plant_config()
+    cfg.tracers.append(TracerPulse(t_s=300.0, mass_kg=0.010, component="api"))
+    run = simulate_line(cfg, 600.0, dt_s=1.0, seed=9)
+    msgs = run_messages(run, spec)
+    pulse = next(m for _, m in msgs if isinstance(m, Event) and m.kind == "tracer_pulse")
+
+    def decide(late_s: float, grace_s: float = 0.0) -> list:
+        core = OosCore(spec)
+        core.inlet_grace_s = grace_s
+        outs, sent = [], False
+        for k, m in msgs:
+            if not sent and m.t > pulse.t + late_s:
+                core.tracer_pulse("api", pulse.t, pulse.mass_kg, pulse.duration_s)
+                sent = True
+            if isinstance(m, FeederFlow):
+                outs += core.flow(keys.parse_key(k).id, m.t, m.mass_flow_kg_h)
+            elif isinstance(m, MeasuredConcentration):
+                outs += core.measured("api", m.t, m.concentration_pct_w_w)
+            outs += core.release_inlet()
+        outs += core.end_of_stream()
+        return [(o.kind, o.id, o.t, o.t_start, o.t_end) for o in outs]
+
+    ref = decide(0.0)
+    assert [o[1] for o in ref if o[0] == "alert"] == ["line1.api.feed-000000300000"]
+    assert decide(12.0) == ref
+    assert decide(120.0, grace_s=1e9) == ref
+    assert decide(120.0) != ref  # past both holds the pulse is moved to a later tick
