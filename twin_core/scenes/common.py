@@ -224,8 +224,10 @@ def run_segments(
     if sim.t < 1e-12 and not state.flags.get("sampled0"):
         cb(sim)
         state.flags["sampled0"] = True
-    while sim.t < t_end - 1e-9:
-        seg = min(checkpoint_interval_s, t_end - sim.t)
+    # runs advance in whole steps (rounded): stop once less than half a step remains, or a
+    # segment shorter than half a step would run no step and loop here forever
+    while t_end - sim.t >= 0.5 * sim.dt:
+        seg = max(min(checkpoint_interval_s, t_end - sim.t), sim.dt)
         t0 = time.perf_counter()
         steps0 = sim.step
         sim.run(seg, callback=cb, callback_every_s=sensor_interval_s)
