@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from schemas.dem_scene import BlenderScene
-from twin_core.dem.frames import FrameReader, FrameWriter
+from twin_core.dem.frames import FrameReader
 from twin_core.dem.sensors import GridFieldSensor, PeriodicTransitSensor, PlaneFlowSensor
 from twin_core.scenes import common
 from twin_core.scenes.geometry import SceneGeometry, blender_section, rectangle
@@ -133,13 +133,10 @@ def run(
         sim, state = loaded
         frames_resume = True
     fi = cfg.output.frame_interval_s or cfg.frame_interval_s
-    frames = FrameWriter(
-        run_dir / "frames",
-        precision=cfg.output.frame_precision,
-        meta={"scene": "blender", "rpm": rpm, "t_mix_start": cfg.settle_s, "length": L},
-        resume=frames_resume,
-        resume_t=sim.t,
-    )
+    frames = common.open_frames(
+        run_dir, cfg, sim, resume=frames_resume,
+        scene="blender", rpm=rpm, t_mix_start=cfg.settle_s, length=L,
+    )  # fmt: skip
 
     def on_sample(s: Any, st: common.RunState) -> None:
         if s.t >= cfg.settle_s - 1e-9:

@@ -186,6 +186,18 @@ class RunState:
     next_frame_t: float = 0.0
 
 
+
+def open_frames(run_dir: Path, cfg: Any, sim: Any, *, resume: bool, **meta: Any) -> FrameWriter:
+    """The scene's frame file ``run_dir/frames`` at the configured precision; on resume it
+    continues from the checkpoint time ``sim.t``. ``meta`` is stored in the manifest."""
+    return FrameWriter(
+        Path(run_dir) / "frames",
+        precision=cfg.output.frame_precision,
+        meta=meta,
+        resume=resume,
+        resume_t=sim.t,
+    )
+
 def run_segments(
     sim: Any,
     t_end: float,

@@ -16,7 +16,6 @@ from typing import Any
 import numpy as np
 
 from schemas.dem_scene import DrawdownScene
-from twin_core.dem.frames import FrameWriter
 from twin_core.dem.sensors import BoxFlowSensor, PlaneFlowSensor, state_view
 from twin_core.scenes import common
 from twin_core.scenes.geometry import SceneGeometry, drawdown_box
@@ -107,13 +106,7 @@ def run(cfg: DrawdownScene, run_dir: Path, *, resume: bool = False, progress: bo
         }
     else:
         sim, state = loaded
-    frames = FrameWriter(
-        run_dir / "frames",
-        precision=cfg.output.frame_precision,
-        meta={"scene": "drawdown"},
-        resume=loaded is not None,
-        resume_t=sim.t,
-    )
+    frames = common.open_frames(run_dir, cfg, sim, resume=loaded is not None, scene="drawdown")
 
     def on_sample(s: Any, st: common.RunState) -> None:
         for sensor in st.sensors.values():

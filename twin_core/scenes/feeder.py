@@ -23,7 +23,6 @@ from typing import Any
 import numpy as np
 
 from schemas.dem_scene import FeederScene
-from twin_core.dem.frames import FrameWriter
 from twin_core.dem.sensors import BoxFlowSensor, ContactSensor, PlaneFlowSensor
 from twin_core.scenes import common
 from twin_core.scenes.geometry import SceneGeometry, feeder, hopper_half_width
@@ -192,12 +191,8 @@ def run(
         state.flags["ids_in"] = set(int(i) for i in sim.ids)
     else:
         sim, state = loaded
-    frames = FrameWriter(
-        run_dir / "frames",
-        precision=cfg.output.frame_precision,
-        meta={"scene": "feeder", "refill_level": refill_level},
-        resume=loaded is not None,
-        resume_t=sim.t,
+    frames = common.open_frames(
+        run_dir, cfg, sim, resume=loaded is not None, scene="feeder", refill_level=refill_level
     )
     fi = cfg.output.frame_interval_s or cfg.frame_interval_s
 

@@ -26,7 +26,6 @@ from typing import Any
 import numpy as np
 
 from schemas.dem_scene import SiloScene
-from twin_core.dem.frames import FrameWriter
 from twin_core.dem.sensors import PlaneFlowSensor
 from twin_core.scenes import common
 from twin_core.scenes.geometry import SceneGeometry, flat_silo
@@ -145,13 +144,7 @@ def run(cfg: SiloScene, run_dir: Path, *, resume: bool = False, progress: bool =
         state.flags["rng"] = np.random.default_rng(cfg.seed + 1)
     else:
         sim, state = loaded
-    frames = FrameWriter(
-        run_dir / "frames",
-        precision=cfg.output.frame_precision,
-        meta={"scene": "silo"},
-        resume=loaded is not None,
-        resume_t=sim.t,
-    )
+    frames = common.open_frames(run_dir, cfg, sim, resume=loaded is not None, scene="silo")
 
     def on_sample(s: Any, st: common.RunState) -> None:
         st.sensors["orifice"].update(s)
