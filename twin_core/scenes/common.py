@@ -186,7 +186,6 @@ class RunState:
     next_frame_t: float = 0.0
 
 
-
 def open_frames(run_dir: Path, cfg: Any, sim: Any, *, resume: bool, **meta: Any) -> FrameWriter:
     """The scene's frame file ``run_dir/frames`` at the configured precision; on resume it
     continues from the checkpoint time ``sim.t``. ``meta`` is stored in the manifest."""
@@ -197,6 +196,7 @@ def open_frames(run_dir: Path, cfg: Any, sim: Any, *, resume: bool, **meta: Any)
         resume=resume,
         resume_t=sim.t,
     )
+
 
 def run_segments(
     sim: Any,
