@@ -14,11 +14,8 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/twin demo
 
-# test_services_live.py (supervised multi-process twin, SIGKILL restart) passes alone and under
-# CPU load, but failed beside the other workers' tests: it runs on its own after the parallel run.
 test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 --dist loadfile -q --ignore=tests/test_services_live.py
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q tests/test_services_live.py
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 --dist loadfile -q
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -13,12 +13,9 @@ import threading
 from pathlib import Path
 from typing import Any
 
-import zenoh
-import zenoh.ext as zext
-
 from schemas.line import LineSpec
 from services.bus import MessageValidator
-from services.common import LiveService
+from services.common import HistoryFeed, LiveService
 
 
 class RecorderService(LiveService):
@@ -37,21 +34,12 @@ class RecorderService(LiveService):
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.rec = McapRecorder(self.path, flush_every=2000, flush_period_s=1.0)
         self.validator = MessageValidator(self.counters, name=self.name, check_time=False)
-        self._sub = zext.declare_advanced_subscriber(
-            self.session,
-            f"twin/{self.spec.name}/**",
-            zenoh.handlers.Callback(self._on_sample, lambda: None),
-            history=zext.HistoryConfig(
-                detect_late_publishers=True, max_samples=self.spec.history_samples
-            ),
-        )
+        self._sub = HistoryFeed(self.session, f"twin/{self.spec.name}/**", self._on_payload)
         self._entities.append(self._sub)
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
+    def _on_payload(self, key: str, payload: bytes) -> None:
         if "/service/" in key:
             return  # health and liveliness are not plant data
-        payload = sample.payload.to_bytes()
         msg = self.validator.check(key, payload)
         if msg is None:
             return

@@ -101,10 +101,10 @@ class _Tap:
 
     def __init__(self, spec: LineSpec, echo: bool) -> None:
         import zenoh
-        import zenoh.ext as zext
 
         from services.bus import open_session
         from services.cli.live import format_alert
+        from services.common import HistoryFeed
 
         self.lock = threading.Lock()
         self.alerts: dict[str, OosAlert] = {}
@@ -121,11 +121,14 @@ class _Tap:
 
         def cb(model, sink):
             def on(sample: zenoh.Sample) -> None:
-                msg = model.model_validate_json(sample.payload.to_bytes())
+                on_payload(str(sample.key_expr), sample.payload.to_bytes())
+
+            def on_payload(key: str, payload: bytes) -> None:
+                msg = model.model_validate_json(payload)
                 with self.lock:
                     sink(msg)
 
-            return zenoh.handlers.Callback(on, lambda: None)
+            return on_payload, zenoh.handlers.Callback(on, lambda: None)
 
         def on_alert(a: OosAlert) -> None:
             if a.alert_id in self.alerts:
@@ -149,33 +152,22 @@ class _Tap:
         def on_meas(m: MeasuredConcentration) -> None:
             self.meas[m.t] = m.concentration_pct_w_w
 
-        hist = zext.HistoryConfig(detect_late_publishers=True, max_samples=spec.history_samples)
         self.subs = [
-            zext.declare_advanced_subscriber(
-                self.session, keys.oos_alert(line), cb(OosAlert, on_alert), history=hist
-            ),
-            zext.declare_advanced_subscriber(
-                self.session, keys.divert_command(line), cb(DivertCommand, on_divert), history=hist
-            ),
-            zext.declare_advanced_subscriber(
-                self.session,
-                keys.rtd_estimate(line),
-                cb(RtdEstimate, self.rtd.append),
-                history=hist,
-            ),
-            zext.declare_advanced_subscriber(
+            HistoryFeed(self.session, keys.oos_alert(line), cb(OosAlert, on_alert)[0]),
+            HistoryFeed(self.session, keys.divert_command(line), cb(DivertCommand, on_divert)[0]),
+            HistoryFeed(self.session, keys.rtd_estimate(line), cb(RtdEstimate, self.rtd.append)[0]),
+            HistoryFeed(
                 self.session,
                 keys.predicted_concentration(line, "outlet"),
-                cb(PredictedConcentration, on_pred),
-                history=hist,
+                cb(PredictedConcentration, on_pred)[0],
             ),
             self.session.declare_subscriber(
                 keys.measured_concentration(line, spec.sensor.id),
-                cb(MeasuredConcentration, on_meas),
+                cb(MeasuredConcentration, on_meas)[1],
             ),
             self.session.declare_subscriber(
                 f"twin/{line}/service/*/health",
-                cb(ServiceHealth, lambda h: self.health.__setitem__(h.service, h)),
+                cb(ServiceHealth, lambda h: self.health.__setitem__(h.service, h))[1],
             ),
         ]
 

@@ -132,12 +132,10 @@ def format_alert(msg) -> str:
 
 
 def cmd_alerts(args: argparse.Namespace) -> int:
-    import zenoh
-    import zenoh.ext as zext
-
     from schemas import keys
     from schemas.messages import DivertCommand, OosAlert
     from services.bus import open_session
+    from services.common import HistoryFeed
 
     spec = _spec(args)
     seen: set[str] = set()
@@ -146,11 +144,11 @@ def cmd_alerts(args: argparse.Namespace) -> int:
     done = threading.Event()
 
     def printer(model):
-        def cb(sample: zenoh.Sample) -> None:
+        def cb(key: str, payload: bytes) -> None:
             try:
-                msg = model.model_validate_json(sample.payload.to_bytes())
+                msg = model.model_validate_json(payload)
             except ValueError as exc:
-                log.warning("bad message on %s: %s", sample.key_expr, exc)
+                log.warning("bad message on %s: %s", key, exc)
                 return
             ident = getattr(msg, "alert_id", None) if model is OosAlert else msg.command_id
             with lock:
@@ -158,7 +156,7 @@ def cmd_alerts(args: argparse.Namespace) -> int:
                     return
                 seen.add(ident)
                 if args.json:
-                    print(json.dumps({"key": str(sample.key_expr), **msg.model_dump(mode="json")}))
+                    print(json.dumps({"key": key, **msg.model_dump(mode="json")}))
                 else:
                     print(format_alert(msg), flush=True)
                 if model is OosAlert:
@@ -171,23 +169,9 @@ def cmd_alerts(args: argparse.Namespace) -> int:
     with open_session(spec.client_bus()) as s:
         subs = []
         for key, model in ((keys.oos_alert(spec.name), OosAlert),):
-            subs.append(
-                zext.declare_advanced_subscriber(
-                    s,
-                    key,
-                    zenoh.handlers.Callback(printer(model), lambda: None),
-                    history=zext.HistoryConfig(detect_late_publishers=True),
-                )
-            )
+            subs.append(HistoryFeed(s, key, printer(model)))
         if args.divert:
-            subs.append(
-                zext.declare_advanced_subscriber(
-                    s,
-                    keys.divert_command(spec.name),
-                    zenoh.handlers.Callback(printer(DivertCommand), lambda: None),
-                    history=zext.HistoryConfig(detect_late_publishers=True),
-                )
-            )
+            subs.append(HistoryFeed(s, keys.divert_command(spec.name), printer(DivertCommand)))
         if args.timeout:
             done.wait(args.timeout)
         elif args.count:
