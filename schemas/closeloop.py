@@ -2,6 +2,9 @@
 
 Written by ``twin_core.closeloop.CloseLoopResult.to_dict()`` and validated with
 :class:`CloseLoopReport` before it is written as JSON. Concentrations are % w/w, times s.
+
+:class:`ModelFinding` is the live twin's message of the same loop run on a window of the bus
+(``twin/<line>/closeloop/finding``, published by the closeloop service, adopted by the blender).
 """
 
 from __future__ import annotations
@@ -10,15 +13,17 @@ from typing import Any, Literal
 
 from pydantic import Field
 
-from schemas.base import Finite, NonNegative, StrictModel
+from schemas.base import Finite, Ident, Message, NonNegative, StrictModel
 
 __all__ = [
     "CandidateScore",
     "CloseLoopReport",
     "Decision",
     "EffectFound",
+    "EffectSpec",
     "ErrorPair",
     "Errors",
+    "ModelFinding",
     "ParamEstimate",
     "Windows",
     "WindowError",
@@ -129,3 +134,32 @@ class CloseLoopReport(StrictModel):
     augmented_model: dict[str, Any]
     n_model_evaluations: int = Field(ge=0)
     figures: list[str] = Field(default_factory=list)
+
+
+class EffectSpec(StrictModel):
+    """An effect of a line model in dict form (``twin_core.plant.effects.make_effect``)."""
+
+    name: Ident = Field(description="effect name, a key of twin_core.plant.effects.EFFECTS")
+    target: Ident | None = Field(None, description="feeder a feeder-stage effect acts on")
+    params: dict[Ident, Finite] = Field(default_factory=dict, description="parameter values")
+
+
+class ModelFinding(Message):
+    """What the online close-loop found on one window. Key: ``twin/<line>/closeloop/finding``.
+
+    ``status``: as :class:`CloseLoopReport`; ``effects``: the effects claimed on this window
+    (parameters with standard errors); ``model_effects``: every effect of the model after this
+    window (the ones adopted before plus the new ones: what the blender adopts);
+    ``errors``: RMSE / MAE of the model before and after, on the window's training and held-out
+    parts.
+    """
+
+    SIGNAL = "finding"
+
+    finding_id: Ident = Field(description="unique id: <line>.closeloop-<window end, ms>")
+    status: Literal["explained", "unexplained", "consistent"]
+    t_start_s: NonNegative = Field(description="window start, plant time, s")
+    t_end_s: NonNegative = Field(description="window end, plant time, s")
+    effects: list[EffectFound] = Field(default_factory=list)
+    model_effects: list[EffectSpec] = Field(default_factory=list)
+    errors: Errors

@@ -107,6 +107,10 @@ def rtd_estimate(line: str) -> str:
     return key(line, "rtd", "estimate")
 
 
+def model_finding(line: str) -> str:
+    return key(line, "closeloop", "finding")
+
+
 def oos_alert(line: str) -> str:
     return key(line, "oos", "alert")
 

@@ -22,6 +22,7 @@ from schemas.bus_config import BusConfig
 
 __all__ = [
     "BlenderModelConfig",
+    "CloseLoopSettings",
     "FeederLine",
     "LineSpec",
     "OosSettings",
@@ -32,7 +33,7 @@ __all__ = [
 ]
 
 #: the services ``twin up`` knows how to start
-SERVICE_NAMES = ("plant", "feeder", "blender", "rtd", "oos", "recorder", "dem")
+SERVICE_NAMES = ("plant", "feeder", "blender", "rtd", "oos", "recorder", "dem", "closeloop")
 
 
 class FeederLine(StrictModel):
@@ -53,7 +54,9 @@ class BlenderModelConfig(StrictModel):
     ``kind: rtd``: an RTD model of ``twin_core.rtd.models`` with its parameters (SI);
     ``kind: compartment``: a compartment-network export (``schemas.blender_model.BlenderModel``
     JSON file) whose impulse response is used. ``kernel_s``: length of E(t) kept for the
-    streaming convolution; ``adopt_rtd_estimates``: replace E(t) by the rtd service's fits.
+    streaming convolution; ``adopt_rtd_estimates``: replace E(t) by the rtd service's fits;
+    ``adopt_findings``: add the effects the closeloop service finds (``twin/<line>/closeloop/finding``)
+    to the prediction model (the time-invariant blender and feeder effects).
     """
 
     kind: Literal["rtd", "compartment"] = "rtd"
@@ -64,6 +67,7 @@ class BlenderModelConfig(StrictModel):
     export_path: str | None = None
     kernel_s: Positive = 300.0
     adopt_rtd_estimates: bool = False
+    adopt_findings: bool = True
 
     @model_validator(mode="after")
     def _export_for_compartment(self) -> BlenderModelConfig:
@@ -143,6 +147,36 @@ class RtdSettings(StrictModel):
     max_duration_s: Positive = 300.0
 
 
+class CloseLoopSettings(StrictModel):
+    """How the closeloop service checks the model against the measurements while the line runs.
+
+    Every ``interval_s`` of plant time, once ``min_window_s`` of data is in, the declared model
+    (plus the effects adopted so far) is checked on the last ``window_s`` (``twin_core.closeloop``:
+    residual -> candidate effects -> held-out test); ``skip_s``: start of a window (after the
+    start of the run) left out of the fit while the model's steady-state start wears off;
+    ``candidates``: effect names tried (empty: all); ``max_effects``: effects added per window.
+    """
+
+    interval_s: Positive = 300.0
+    window_s: Positive = 1200.0
+    min_window_s: Positive = 600.0
+    skip_s: NonNegative = 150.0
+    candidates: list[Ident] = Field(default_factory=list)
+    max_effects: int = Field(1, ge=1, le=2)
+
+    @model_validator(mode="after")
+    def _windows(self) -> CloseLoopSettings:
+        if self.min_window_s > self.window_s:
+            raise ValueError(
+                f"min_window_s must be <= window_s, got {self.min_window_s} > {self.window_s}"
+            )
+        if self.skip_s >= self.min_window_s:
+            raise ValueError(
+                f"skip_s must be < min_window_s, got {self.skip_s} >= {self.min_window_s}"
+            )
+        return self
+
+
 class LineSpec(StrictModel):
     """The whole live-twin configuration (see the module docstring)."""
 
@@ -154,12 +188,13 @@ class LineSpec(StrictModel):
     spec: list[SpecLimits] = Field(min_length=1)
     oos: OosSettings = Field(default_factory=OosSettings)
     rtd: RtdSettings = Field(default_factory=RtdSettings)
+    closeloop: CloseLoopSettings = Field(default_factory=CloseLoopSettings)
     bus: BusConfig = Field(
         default_factory=lambda: BusConfig(mode="router", listen=["tcp/127.0.0.1:7447"], connect=[])
     )
-    services: list[Literal["plant", "feeder", "blender", "rtd", "oos", "recorder", "dem"]] = Field(
-        default_factory=lambda: ["feeder", "blender", "rtd", "oos"]
-    )
+    services: list[
+        Literal["plant", "feeder", "blender", "rtd", "oos", "recorder", "dem", "closeloop"]
+    ] = Field(default_factory=lambda: ["feeder", "blender", "rtd", "oos"])
     feeder_mode: Literal["replay", "simulate"] = Field(
         "replay",
         description="replay: pass recorded load-cell flows through; simulate: run the LIW model",

@@ -10,7 +10,14 @@ first flows). Subscribes ``twin/<line>/feeder/*/flow``; publishes one
 :class:`~schemas.messages.PredictedConcentration` per component per tick on
 ``twin/<line>/blender/outlet/predicted``. Announced tracer pulses (``tracer_pulse`` events with
 their mass) enter the inlet of their component as in the declared model. With ``blender.adopt_rtd_estimates`` it replaces E(t)
-by each RTD estimate the rtd service publishes (``twin/<line>/rtd/estimate``).
+by each RTD estimate the rtd service publishes (``twin/<line>/rtd/estimate``). With
+``blender.adopt_findings`` it adopts the model of each closeloop finding
+(``twin/<line>/closeloop/finding``): its blender (rtd-stage) effects transform E(t)
+(``twin_core.plant.model.rtd_kernel``: dead zone, bypass, extra delay, back-mixing, on the
+declared or latest estimated RTD) and its feeder-stage effects turn each feeder's reported flow
+into the delivered one (e.g. a refill surge) before the convolution. Effects that grow with time
+from the start of their window (drifts) and sensor effects (the probe, not the outlet) are not
+adopted: they are reported by the finding (``not_adopted`` counter).
 
 A restarted blender recomputes from the flow history and does not publish a tick again: the last
 published tick is kept in the run's state directory.
@@ -19,16 +26,20 @@ published tick is kept in the run's state directory.
 from __future__ import annotations
 
 import logging
+from collections import deque
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from schemas import keys
+from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import Event, FeederFlow, PredictedConcentration, RtdEstimate
 from services.common import LiveService
 from twin_core.online import InletAligner, StreamingConvolver, TracerInjector
+from twin_core.plant.effects import Effect, make_effect
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +86,15 @@ class BlenderPredictor:
         )
         self.conv: dict[str, StreamingConvolver] | None = None
         self.tracer = TracerInjector(spec.dt_s)
+        b = spec.blender
+        #: the RTD model E(t) is built from (declared, or the latest estimate); None: compartment
+        self.rtd_model: tuple[str, dict[str, float]] | None = (
+            (b.model, dict(b.params)) if b.kind == "rtd" and e is None else None
+        )
+        #: adopted effects (rtd and feeder stage)
+        self.effects: list[Effect] = []
+        self._refill: dict[str, dict[int, bool]] = {f: {} for f in self.components}
+        self._hist: dict[str, deque[tuple[float, float, bool]]] = {}
 
     def set_kernel(self, e: np.ndarray) -> None:
         """Replace E(t) (an adopted RTD estimate), keeping the flow history."""
@@ -83,19 +103,83 @@ class BlenderPredictor:
             for c in self.conv.values():
                 c.set_kernel(self.e)
 
+    def _kernel(self) -> np.ndarray:
+        """E(t) of the RTD model with the adopted rtd-stage effects, on the tick grid."""
+        from twin_core.plant.config import BlenderSpec
+        from twin_core.plant.model import rtd_kernel as model_kernel
+
+        assert self.rtd_model is not None
+        model, params = self.rtd_model
+        dt = self.spec.dt_s
+        n = int(np.ceil(self.spec.blender.kernel_s / dt))
+        # an adopted effect may lengthen the tail (a dead zone of tau_s up to 600 s): keep E(t)
+        # until less than 1e-7 of its mass is left out (at most MAX_KERNEL_S)
+        n_max = max(n, int(np.ceil(self.MAX_KERNEL_S / dt)))
+        e = model_kernel(BlenderSpec(model, dict(params)), np.arange(n_max) * dt, self.effects)
+        tail = dt * (e.sum() - np.cumsum(e))
+        n_need = int(np.argmax(tail < 1e-7)) + 1 if np.any(tail < 1e-7) else n_max
+        return e[: max(n, n_need)]
+
+    def set_rtd_model(self, model: str, params: Mapping[str, float]) -> None:
+        """A new base RTD (an adopted estimate); the adopted rtd effects stay on top of it."""
+        self.rtd_model = (model, dict(params))
+        self.set_kernel(self._kernel())
+
+    def adoptable(self, effect: Effect) -> bool:
+        """Can this effect change the prediction of the outlet (see the module docstring)?"""
+        if not effect.time_invariant or effect.stage == "sensor":
+            return False
+        return effect.stage == "feeder" or self.rtd_model is not None
+
+    def set_effects(self, effects: Sequence[Effect | Mapping]) -> list[Effect]:
+        """Adopt a model's effects; returns the ones that could not be adopted."""
+        effs = [make_effect(e) for e in effects]
+        self.effects = [e for e in effs if self.adoptable(e)]
+        if self.rtd_model is not None:
+            self.set_kernel(self._kernel())
+        return [e for e in effs if not self.adoptable(e)]
+
+    #: longest E(t) an adopted effect may stretch the kernel to, s
+    MAX_KERNEL_S = 7200.0
+
+    #: reported flow kept per feeder for the feeder-stage effects (ticks; a refill surge decays
+    #: within its tau <= 180 s, so 1800 ticks leave < exp(-10) of it out)
+    FLOW_MEMORY = 1800
+
+    def _delivered(self, feeder: str, t: float, q: float, refilling: bool) -> float:
+        """The delivered flow under the adopted feeder-stage effects (causal: the effect's
+        ``apply_flow`` on the feeder's recent reported flows, last value)."""
+        effs = [e for e in self.effects if e.stage == "feeder" and e.target in (None, feeder)]
+        h = self._hist.setdefault(feeder, deque(maxlen=self.FLOW_MEMORY))
+        h.append((t, q, refilling))
+        if not effs:
+            return q
+        arr = np.array(h, dtype=float)
+        tt, qq, rr = arr[:, 0], arr[:, 1], arr[:, 2].astype(bool)
+        for e in sorted(effs, key=lambda e: e.order):
+            qq = e.apply_flow(tt, qq, rr)
+        return float(qq[-1])
+
     def add_pulse(self, component: str, t_s: float, mass_kg: float, duration_s: float) -> None:
         """A tracer pulse entering the inlet (``twin_core.online.TracerInjector``)."""
         if component not in self.comp_names:
             raise ValueError(f"component must be one of {self.comp_names}, got {component!r}")
         self.tracer.add_pulse(component, t_s, mass_kg, duration_s)
 
-    def push(self, feeder: str, t: float, flow_kg_h: float) -> list[tuple[float, dict[str, float]]]:
+    def push(
+        self, feeder: str, t: float, flow_kg_h: float, refilling: bool = False
+    ) -> list[tuple[float, dict[str, float]]]:
         """One feeder sample -> the (t, {component: % w/w}) of every tick it completed."""
         out = []
+        dt = self.spec.dt_s
+        if refilling:
+            self._refill[feeder][int(round(t / dt))] = True
         for tt, flows in self.aligner.push(feeder, t, flow_kg_h):
             mass = {c: 0.0 for c in self.comp_names}
+            k = int(round(tt / dt))
             for f, q in flows.items():
-                mass[self.components[f]] += q
+                r = self._refill[f].pop(k, False)
+                mass[self.components[f]] += self._delivered(f, tt, q, r)
             steady = dict(mass)
             self.tracer.apply(tt, mass)
             if self.conv is None:
@@ -136,6 +220,8 @@ class BlenderService(LiveService):
         self.history_subscribe(f"twin/{line}/*/*/event", Event)
         if self.spec.blender.adopt_rtd_estimates:
             self.history_subscribe(keys.rtd_estimate(line), RtdEstimate)
+        if self.spec.blender.adopt_findings:
+            self.history_subscribe(keys.model_finding(line), ModelFinding)
 
     def handle(self, key: str, msg: Any) -> None:
         if isinstance(msg, Event):
@@ -147,16 +233,34 @@ class BlenderService(LiveService):
                     self.counters.inc("tracer_pulses")
             return
         if isinstance(msg, RtdEstimate):
-            e = rtd_kernel(msg.model, dict(msg.params), self.spec.dt_s, self.spec.blender.kernel_s)
-            self.core.set_kernel(e)
+            if self.core.rtd_model is not None:
+                self.core.set_rtd_model(msg.model, msg.params)
+            else:
+                e = rtd_kernel(
+                    msg.model, dict(msg.params), self.spec.dt_s, self.spec.blender.kernel_s
+                )
+                self.core.set_kernel(e)
             self.model_name = msg.model
             self.counters.inc("rtd_adopted")
+            return
+        if isinstance(msg, ModelFinding):
+            new = [e.model_dump() for e in msg.model_effects]
+            if new != [e.to_dict() for e in self.core.effects]:
+                left = self.core.set_effects(new)
+                self.counters.inc("findings_adopted")
+                if left:
+                    self.counters.inc("not_adopted", len(left))
+                    log.info(
+                        "blender: finding %s: not adopted: %s",
+                        msg.finding_id,
+                        ", ".join(e.label() for e in left),
+                    )
             return
         feeder = keys.parse_key(key).id
         if feeder not in self.core.components:
             self.counters.inc("rejected_unknown")
             return
-        for t, conc in self.core.push(feeder, msg.t, msg.mass_flow_kg_h):
+        for t, conc in self.core.push(feeder, msg.t, msg.mass_flow_kg_h, msg.refilling):
             if t <= self.last_published_t:
                 continue  # already published before a restart
             for i, c in enumerate(self.core.comp_names):

@@ -38,12 +38,16 @@ def make_service(name: str, spec: LineSpec, **kwargs):
         from services.recorder import RecorderService
 
         return RecorderService(spec, **kwargs)
+    if name == "closeloop":
+        from services.closeloop import CloseLoopService
+
+        return CloseLoopService(spec, **kwargs)
     if name == "dem":
         from services.dem import DemService
 
         return DemService(spec, **kwargs)
     raise ValueError(
-        f"service must be one of blender, oos, feeder, rtd, recorder, dem, got {name!r}"
+        f"service must be one of blender, oos, feeder, rtd, recorder, dem, closeloop, got {name!r}"
     )
 
 

@@ -36,7 +36,7 @@ from services.common import STATE_ENV
 
 log = logging.getLogger(__name__)
 
-SUPERVISED = ("feeder", "blender", "rtd", "oos", "recorder", "dem")
+SUPERVISED = ("feeder", "blender", "rtd", "oos", "recorder", "dem", "closeloop")
 
 
 @dataclass

@@ -1,10 +1,10 @@
 """The whole live twin on a recording: :func:`run_full_twin_demo`.
 
-Services up (supervised processes: feeder, blender, rtd, oos, recorder; a zenoh router on a
-free loopback port), the recording replayed at ``speed`` x real time by the virtual plant,
-alerts printed as they come, then a run report (``report.json`` and ``report.md``: messages,
-alerts, divert commands, RTD estimates, prediction error, timings, rejected messages) and a
-figure (``outlet.png``: measured vs predicted outlet concentration, alert windows shaded).
+Services up (supervised processes: feeder, blender, rtd, oos, closeloop, recorder; a zenoh
+router on a free loopback port), the recording replayed at ``speed`` x real time by the virtual
+plant, alerts printed as they come, then a run report (``report.json`` and ``report.md``:
+messages, alerts, divert commands, RTD estimates, the close-loop's model findings, prediction
+error, timings, rejected messages) and a figure (``outlet.png``: measured vs predicted outlet concentration, alert windows shaded).
 
 The line configuration is derived from the recording (feeders and set points from the flows,
 sensor from the PAT channel, target = the set-point composition, limits 85-115 % of target) on
@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from schemas import keys
+from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import (
     DivertCommand,
@@ -87,13 +88,21 @@ def spec_for_recording(rec: Any, port: int, state_dir: Path, base: Path = BASE_C
             }
         ],
         bus={"mode": "router", "listen": [f"tcp/127.0.0.1:{port}"], "connect": []},
-        services=["feeder", "blender", "rtd", "oos", "recorder"],
+        services=["feeder", "blender", "rtd", "oos", "closeloop", "recorder"],
         feeder_mode="replay",
         express=False,  # high-speed replay: batching beats per-message latency
         state_dir=str(state_dir),
         record_path="twin-demo.mcap",
     )
     return LineSpec.model_validate(data)
+
+
+def expected_findings(spec: LineSpec, t_first: float, t_last: float) -> int:
+    """Number of close-loop windows of a run from ``t_first`` to ``t_last`` (plant time)."""
+    c = spec.closeloop
+    if "closeloop" not in spec.services or t_last - t_first < c.min_window_s:
+        return 0
+    return int((t_last - t_first - c.min_window_s) // c.interval_s) + 1
 
 
 class _Tap:
@@ -110,6 +119,7 @@ class _Tap:
         self.alerts: dict[str, OosAlert] = {}
         self.diverts: dict[str, DivertCommand] = {}
         self.rtd: list[RtdEstimate] = []
+        self.findings: dict[str, ModelFinding] = {}
         self.health: dict[str, ServiceHealth] = {}
         self.pred: dict[float, float] = {}
         self.meas: dict[float, float] = {}
@@ -156,6 +166,11 @@ class _Tap:
             HistoryFeed(self.session, keys.oos_alert(line), cb(OosAlert, on_alert)[0]),
             HistoryFeed(self.session, keys.divert_command(line), cb(DivertCommand, on_divert)[0]),
             HistoryFeed(self.session, keys.rtd_estimate(line), cb(RtdEstimate, self.rtd.append)[0]),
+            HistoryFeed(
+                self.session,
+                keys.model_finding(line),
+                cb(ModelFinding, lambda f: self.findings.__setitem__(f.finding_id, f))[0],
+            ),
             HistoryFeed(
                 self.session,
                 keys.predicted_concentration(line, "outlet"),
@@ -248,10 +263,16 @@ def run_full_twin_demo(
             n_sent = rp.replay()
             timings["replay_wall_s"] = rp.wall_s
             last_t = rec.messages[-1].t if rec.messages else 0.0
+            n_windows = expected_findings(spec, rec.messages[0].t if rec.messages else 0.0, last_t)
             t_wait = time.perf_counter()
             while time.perf_counter() - t_wait < 120:
                 h = tap.health.get("oos")
-                if h is not None and h.t >= last_t and (tap.pred and max(tap.pred) >= last_t - 1):
+                if (
+                    h is not None
+                    and h.t >= last_t
+                    and (tap.pred and max(tap.pred) >= last_t - 1)
+                    and len(tap.findings) >= n_windows
+                ):
                     break
                 time.sleep(0.1)
             timings["drain_s"] = time.perf_counter() - t_wait
@@ -287,6 +308,9 @@ def run_full_twin_demo(
         "alerts": [a.model_dump(mode="json") for a in alerts],
         "divert_commands": [d.model_dump(mode="json") for d in tap.diverts.values()],
         "rtd_estimates": [r.model_dump(mode="json") for r in tap.rtd],
+        "model_findings": [
+            f.model_dump(mode="json") for f in sorted(tap.findings.values(), key=lambda f: f.t)
+        ],
         "duplicates_seen": tap.duplicates,
         "service_health": health,
         "exit_codes": codes,
@@ -324,6 +348,21 @@ def run_full_twin_demo(
         lines.append(
             f"\nRTD estimate (pulse at {r.pulse_t_s} s): {r.model} {ps}, "
             f"mean residence time {r.mean_residence_time_s:.1f} s"
+        )
+    if tap.findings:
+        lines += [
+            "",
+            "| close-loop window (s) | status | effects found | held-out RMSE before -> after |",
+            "|---|---|---|---|",
+        ]
+    for f in sorted(tap.findings.values(), key=lambda f: f.t):
+        eff = ", ".join(
+            e.label + " (" + ", ".join(f"{p.name}={p.value:.3g}" for p in e.params) + ")"
+            for e in f.effects
+        )
+        lines.append(
+            f"| {f.t_start_s:.0f} - {f.t_end_s:.0f} | {f.status} | {eff or '-'} | "
+            f"{f.errors.before.heldout.rmse:.3f} -> {f.errors.after.heldout.rmse:.3f} |"
         )
     lines += ["", "![outlet](outlet.png)", ""]
     (out / "report.md").write_text("\n".join(lines))

@@ -36,7 +36,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from services.twin_demo import run_full_twin_demo
 
     print(
-        f"\ntwin demo: the live twin (feeder, blender, rtd, oos, recorder services) on the same "
+        f"\ntwin demo: the live twin (feeder, blender, rtd, oos, closeloop, recorder services) on the same "
         f"recording at {args.twin_speed:g}x; report and figure to {args.out}/",
         flush=True,
     )

@@ -67,6 +67,9 @@ class Effect:
     doc: ClassVar[str] = ""
     #: order of application inside a stage (lower first)
     order: ClassVar[int] = 0
+    #: False for effects that change with time from the start of their record (drifts): a
+    #: streaming model cannot adopt them as a fixed structural change
+    time_invariant: ClassVar[bool] = True
 
     def __init__(self, target: str | None = None, **values: float) -> None:
         names = [p.name for p in self.params]
@@ -327,6 +330,7 @@ class FeedFactorDrift(Effect):
 
     name = "feed_factor_drift"
     stage = "feeder"
+    time_invariant = False
     doc = "relative drift rate r of delivered vs reported flow, per hour"
     params = (
         ParamSpec("rate_per_h", 0.0, -2.0, 2.0, "1/h", "relative flow drift per hour", (0.1, -0.1)),
@@ -398,6 +402,7 @@ class SensorDrift(Effect):
 
     name = "sensor_drift"
     stage = "sensor"
+    time_invariant = False
     order = 3
     doc = "linear drift d of the reading, % w/w per hour"
     params = (ParamSpec("rate_per_h", 0.0, -20.0, 20.0, "% w/w / h", "drift rate", (0.5, -0.5)),)

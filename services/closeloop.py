@@ -1,0 +1,162 @@
+"""Closeloop service: checks the twin's model against the plant while the line runs.
+
+Thin shell over :class:`twin_core.closeloop.online.OnlineCloseLoop`: subscribes the feeder flows
+(``twin/<line>/feeder/*/flow``, with refill flags), the NIR readings
+(``twin/<line>/pat/<sensor>/concentration``) and the plant events (tracer pulses with their
+mass, refills); every ``closeloop.interval_s`` of plant time it checks the declared model plus
+the effects adopted so far on the last ``closeloop.window_s`` (residual -> candidate effects ->
+held-out test, ``twin_core.closeloop``) and publishes a :class:`~schemas.closeloop.ModelFinding`
+on ``twin/<line>/closeloop/finding``: status, the effects claimed with their uncertainties, the
+model's full effect list (what the blender adopts) and RMSE / MAE before and after.
+
+The identification of a window (about a second) runs in a worker thread, windows in plant-time
+order, so the bus callbacks never wait for it and the findings do not depend on timing. A
+restarted service recomputes the findings from the publishers' history (the adopted model
+follows) and does not publish a finding again (ids in the run's output log).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from typing import Any
+
+from schemas import keys
+from schemas.closeloop import EffectFound, EffectSpec, Errors, ModelFinding
+from schemas.line import LineSpec
+from schemas.messages import Event, FeederFlow, MeasuredConcentration
+from services.common import LiveService, OutputLog
+from twin_core.closeloop.online import OnlineCloseLoop, WindowData
+from twin_core.closeloop.report import Finding
+
+log = logging.getLogger(__name__)
+
+
+def finding_id(line: str, t_end_s: float) -> str:
+    """Stable id of the finding of the window ending at ``t_end_s``."""
+    return f"{line}.closeloop-{int(round(t_end_s * 1000)):012d}"
+
+
+def to_message(f: Finding, line: str, seq: int) -> ModelFinding:
+    """The wire message of a finding (validated: a finding that does not fit raises)."""
+    return ModelFinding(
+        t=f.t_end_s,
+        seq=seq,
+        finding_id=finding_id(line, f.t_end_s),
+        status=f.status,
+        t_start_s=f.t_start_s,
+        t_end_s=f.t_end_s,
+        effects=[EffectFound.model_validate(e) for e in f.effects],
+        model_effects=[EffectSpec.model_validate(e) for e in f.augmented_effects],
+        errors=Errors.model_validate(f.errors),
+    )
+
+
+class CloseLoopService(LiveService):
+    """See the module docstring."""
+
+    def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
+        super().__init__("closeloop", spec, **kwargs)
+        c = spec.closeloop
+        self.core = OnlineCloseLoop(
+            spec.plant_config(),
+            spec.dt_s,
+            interval_s=c.interval_s,
+            window_s=c.window_s,
+            min_window_s=c.min_window_s,
+            skip_s=c.skip_s,
+            candidates=c.candidates,
+            max_effects=c.max_effects,
+        )
+        self.log_ids = OutputLog(self.state_path / "closeloop.published")
+        self._jobs: queue.SimpleQueue[WindowData | None] = queue.SimpleQueue()
+        self._worker: threading.Thread | None = None
+        #: windows queued and not yet evaluated
+        self.pending = 0
+        self._plock = threading.Lock()
+
+    def setup(self) -> None:
+        line = self.spec.name
+        self.pub = self.history_publisher(keys.model_finding(line), ModelFinding)
+        self.history_subscribe(f"twin/{line}/feeder/*/flow", FeederFlow)
+        self.history_subscribe(
+            keys.measured_concentration(line, self.spec.sensor.id), MeasuredConcentration
+        )
+        self.history_subscribe(f"twin/{line}/*/*/event", Event)
+        self._worker = threading.Thread(target=self._work, name="closeloop-worker", daemon=True)
+        self._worker.start()
+
+    def handle(self, key: str, msg: Any) -> None:
+        core = self.core
+        if isinstance(msg, FeederFlow):
+            feeder = keys.parse_key(key).id
+            if feeder not in core.components:
+                self.counters.inc("rejected_unknown")
+                return
+            core.add_flow(feeder, msg.t, msg.mass_flow_kg_h, msg.refilling)
+        elif isinstance(msg, MeasuredConcentration):
+            if msg.quality == "bad" or msg.component != self.spec.sensor.component:
+                self.counters.inc("ignored_measurements")
+                return
+            core.add_measured(msg.t, msg.concentration_pct_w_w)
+        elif isinstance(msg, Event):
+            core.add_event(
+                {
+                    "t_s": msg.t,
+                    "kind": msg.kind,
+                    "source": msg.source,
+                    "component": msg.component,
+                    "mass_kg": msg.mass_kg,
+                    "duration_s": msg.duration_s,
+                    "detail": msg.detail,
+                }
+            )
+            return
+        else:
+            return
+        for w in core.due():
+            with self._plock:
+                self.pending += 1
+            self._jobs.put(core.snapshot(w))
+
+    def _work(self) -> None:
+        while True:
+            data = self._jobs.get()
+            if data is None:
+                return
+            try:
+                f = self.core.evaluate(data)
+                self._publish(f)
+            except Exception as exc:  # noqa: BLE001 - one bad window must not stop the loop
+                self.counters.inc("window_errors")
+                self.counters.last_error = f"{type(exc).__name__}: {exc}"[:500]
+                log.exception("closeloop: window %s failed", data.window)
+            finally:
+                with self._plock:
+                    self.pending -= 1
+
+    def _publish(self, f: Finding) -> None:
+        self.counters.inc("windows_checked")
+        self.counters.inc(f"status_{f.status}")
+        fid = finding_id(self.spec.name, f.t_end_s)
+        if fid in self.log_ids:
+            self.counters.inc("suppressed_republish")
+            return
+        msg = self.pub.publish(to_message(f, self.spec.name, self.pub.seq))
+        self.log_ids.add(fid)
+        if f.status == "explained":
+            log.info(
+                "closeloop: window %.0f-%.0f s explained by %s (held-out RMSE %.3f -> %.3f)",
+                f.t_start_s,
+                f.t_end_s,
+                ", ".join(e.label for e in msg.effects),
+                msg.errors.before.heldout.rmse,
+                msg.errors.after.heldout.rmse,
+            )
+
+    def finish(self) -> None:
+        self._jobs.put(None)
+        if self._worker is not None:
+            self._worker.join(timeout=30.0)
+        self.log_ids.close()

@@ -1,0 +1,232 @@
+"""The close-loop on a running line: stream samples in, get a finding per window.
+
+:class:`OnlineCloseLoop` keeps the recent feeder flows (with refill flags), NIR readings and
+tracer pulses on the line's tick grid. Every ``interval_s`` of plant time, once ``min_window_s``
+of data is in, the current model (the declared one plus the effects adopted so far) is checked
+on the last ``window_s`` with :func:`twin_core.closeloop.report.online_finding` (residual ->
+candidate effects -> held-out test; Akaike/Schwarz selection and the held-out likelihood-ratio
+test of ``twin_core.closeloop.identify``). An ``explained`` finding is adopted: the model used
+for the next windows is the augmented one, so an effect is found once and later windows check
+that the fix holds (``consistent``).
+
+Windows are closed in plant time, when every stream has passed their end, so the findings do not
+depend on the order or the speed at which the samples arrive.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from twin_core.closeloop.report import Finding, online_finding
+from twin_core.plant.config import LineConfig, TracerPulse
+from twin_core.plant.model import LineInputs, LineModel
+
+
+@dataclass(frozen=True)
+class Window:
+    """A window of plant time [t_start_s, t_end_s] due for a check."""
+
+    t_start_s: float
+    t_end_s: float
+
+
+@dataclass
+class WindowData:
+    """The arrays of one window (:meth:`OnlineCloseLoop.snapshot`), ready to evaluate."""
+
+    window: Window
+    t_s: np.ndarray
+    measured: np.ndarray
+    inputs: LineInputs
+    events: list[dict[str, Any]]
+    skip_s: float
+
+
+class OnlineCloseLoop:
+    """Windows of a running line -> :class:`Finding` s (see the module docstring).
+
+    Args:
+        config: the declared line (feeders, blender, sensor).
+        dt_s: tick of the flow stream, s.
+        interval_s, window_s, min_window_s, skip_s: as ``schemas.line.CloseLoopSettings``.
+        candidates: effect names tried (empty: all registered effects).
+        max_effects: effects claimed per window (1 or 2).
+        effects: effects already adopted (dict form), e.g. after a restart.
+    """
+
+    def __init__(
+        self,
+        config: LineConfig,
+        dt_s: float = 1.0,
+        *,
+        interval_s: float = 300.0,
+        window_s: float = 1200.0,
+        min_window_s: float = 600.0,
+        skip_s: float = 150.0,
+        candidates: Sequence[str] = (),
+        max_effects: int = 1,
+        effects: Sequence[Mapping[str, Any]] = (),
+    ) -> None:
+        if dt_s <= 0:
+            raise ValueError(f"dt_s must be > 0, got {dt_s!r}")
+        if not 0 <= skip_s < min_window_s <= window_s:
+            raise ValueError(
+                "need 0 <= skip_s < min_window_s <= window_s, got "
+                f"{skip_s} / {min_window_s} / {window_s}"
+            )
+        if interval_s <= 0:
+            raise ValueError(f"interval_s must be > 0, got {interval_s!r}")
+        self.config = config
+        self.dt_s = float(dt_s)
+        self.interval_s = float(interval_s)
+        self.window_s = float(window_s)
+        self.min_window_s = float(min_window_s)
+        self.skip_s = float(skip_s)
+        self.candidates = list(candidates)
+        self.max_effects = int(max_effects)
+        self.components = {f.name: f.component for f in config.feeders}
+        self.model_ = LineModel(config, list(effects))
+        self._flows: dict[str, dict[int, tuple[float, bool]]] = {f: {} for f in self.components}
+        self._meas: dict[int, float] = {}
+        self._tracers: dict[tuple[float, str], TracerPulse] = {}
+        self._events: list[dict[str, Any]] = []
+        self._t0: int | None = None
+        self._next_due: int | None = None
+        self.findings_: list[Finding] = []
+
+    # -- input -----------------------------------------------------------------------------
+    def _tick(self, t: float) -> int:
+        return int(round(t / self.dt_s))
+
+    def _start(self, k: int) -> None:
+        if self._t0 is None:
+            self._t0 = k
+            self._next_due = k + int(round(self.min_window_s / self.dt_s))
+
+    def add_flow(self, feeder: str, t: float, flow_kg_h: float, refilling: bool = False) -> None:
+        """A reported feeder flow (kg/h) at plant time t."""
+        if feeder not in self._flows:
+            raise ValueError(f"feeder must be one of {sorted(self._flows)}, got {feeder!r}")
+        if not np.isfinite(flow_kg_h) or flow_kg_h < 0:
+            raise ValueError(f"flow_kg_h must be finite and >= 0, got {flow_kg_h!r}")
+        k = self._tick(t)
+        self._start(k)
+        self._flows[feeder][k] = (float(flow_kg_h), bool(refilling))
+
+    def add_measured(self, t: float, c_pct_w_w: float) -> None:
+        """A reading of the NIR probe (% w/w) at plant time t."""
+        if not np.isfinite(c_pct_w_w):
+            raise ValueError(f"c_pct_w_w must be finite, got {c_pct_w_w!r}")
+        self._meas[self._tick(t)] = float(c_pct_w_w)
+
+    def add_event(self, event: Mapping[str, Any]) -> None:
+        """A plant event as a dict (``kind``, ``t_s``, ``source``, ...); ``tracer_pulse`` events
+        with ``mass_kg`` enter the model's inlet as pulses of ``component`` (or ``source``)."""
+        ev = dict(event)
+        if "t_s" not in ev or "kind" not in ev:
+            raise ValueError(f"event must have 't_s' and 'kind', got {sorted(ev)}")
+        self._events.append(ev)
+        if ev["kind"] == "tracer_pulse" and ev.get("mass_kg"):
+            comp = ev.get("component") or ev.get("source")
+            key = (float(ev["t_s"]), str(comp))
+            if key not in self._tracers:
+                self._tracers[key] = TracerPulse(
+                    float(ev["t_s"]),
+                    float(ev["mass_kg"]),
+                    str(comp),
+                    float(ev.get("duration_s") or 1.0),
+                )
+
+    # -- windows ---------------------------------------------------------------------------
+    def _last_complete_tick(self) -> int | None:
+        ends = [max(d) if d else None for d in self._flows.values()]
+        if any(e is None for e in ends) or not self._meas:
+            return None
+        return min(min(ends), max(self._meas))  # type: ignore[type-var]
+
+    def due(self) -> list[Window]:
+        """The windows whose end every stream has passed, oldest first (each returned once)."""
+        last = self._last_complete_tick()
+        out: list[Window] = []
+        if last is None or self._next_due is None or self._t0 is None:
+            return out
+        step = max(1, int(round(self.interval_s / self.dt_s)))
+        span = int(round(self.window_s / self.dt_s))
+        while self._next_due <= last:
+            b = self._next_due
+            a = max(self._t0, b - span)
+            out.append(Window(a * self.dt_s, b * self.dt_s))
+            self._next_due += step
+        return out
+
+    def window_data(self, w: Window) -> tuple[np.ndarray, np.ndarray, LineInputs, list[dict]]:
+        """(t, measured, inputs, events) of a window on the tick grid. A missing flow sample
+        holds the previous one (the first available one at the start); a missing reading is NaN
+        (left out of the fit)."""
+        a, b = self._tick(w.t_start_s), self._tick(w.t_end_s)
+        ks = np.arange(a, b + 1)
+        t = ks * self.dt_s
+        flows: dict[str, np.ndarray] = {}
+        refill: dict[str, np.ndarray] = {}
+        for f, d in self._flows.items():
+            q = np.full(ks.size, np.nan)
+            r = np.zeros(ks.size, dtype=bool)
+            for i, k in enumerate(ks):
+                v = d.get(int(k))
+                if v is not None:
+                    q[i], r[i] = v
+            good = np.isfinite(q)
+            if not good.any():
+                raise ValueError(f"no flow of feeder {f!r} in window [{w.t_start_s}, {w.t_end_s}]")
+            idx = np.where(good, np.arange(ks.size), -1)
+            idx = np.maximum.accumulate(idx)
+            idx[idx < 0] = int(np.argmax(good))
+            flows[f] = q[idx]
+            refill[f] = r
+        y = np.array([self._meas.get(int(k), np.nan) for k in ks])
+        tracers = [p for p in self._tracers.values() if t[0] - 600.0 <= p.t_s <= t[-1]]
+        inputs = LineInputs(t, flows, dict(self.components), refill, tracers)
+        events = [e for e in self._events if t[0] <= float(e["t_s"]) <= t[-1]]
+        return t, y, inputs, events
+
+    def snapshot(self, w: Window) -> WindowData:
+        """The arrays of window ``w``; then forget the data no later window needs. Cheap: the
+        streaming side calls it, the slow :meth:`evaluate` may run in another thread (it only
+        touches the model)."""
+        t, y, inputs, events = self.window_data(w)
+        # the run's first window starts with the line at steady state; a later one starts
+        # with the response to earlier inputs still in the blender: fit after skip_s
+        first = self._t0 is not None and self._tick(w.t_start_s) == self._t0
+        data = WindowData(w, t, y, inputs, events, 0.0 if first else self.skip_s)
+        self._prune(self._tick(w.t_end_s))
+        return data
+
+    def evaluate(self, data: WindowData) -> Finding:
+        """Check the current model on a window; adopt the effects of an explained finding."""
+        options: dict[str, Any] = {"skip_s": data.skip_s, "max_effects": self.max_effects}
+        if self.candidates:
+            options["candidates"] = list(self.candidates)
+        f = online_finding(data.t_s, data.measured, data.inputs, self.model_, data.events, options)
+        if f.status == "explained":
+            self.model_ = LineModel(self.config, f.augmented_effects)
+        self.findings_.append(f)
+        return f
+
+    def check(self, w: Window) -> Finding:
+        """:meth:`snapshot` then :meth:`evaluate` (single-threaded use)."""
+        return self.evaluate(self.snapshot(w))
+
+    def _prune(self, end: int) -> None:
+        """Forget what no later window can use."""
+        keep_from = end - int(round(self.window_s / self.dt_s)) + 1
+        for d in self._flows.values():
+            for k in [k for k in d if k < keep_from]:
+                del d[k]
+        for k in [k for k in self._meas if k < keep_from]:
+            del self._meas[k]
+        lo = keep_from * self.dt_s - 600.0
+        self._events = [e for e in self._events if float(e["t_s"]) >= lo]
