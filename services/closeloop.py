@@ -94,7 +94,7 @@ class CloseLoopService(LiveService):
             if feeder not in core.components:
                 self.counters.inc("rejected_unknown")
                 return
-            core.add_flow(feeder, msg.t, msg.mass_flow_kg_h, msg.refilling)
+            core.add_flow(feeder, msg.t, msg.mass_flow_kg_h, msg.refilling, msg.screw_speed_rpm)
         elif isinstance(msg, MeasuredConcentration):
             if msg.quality == "bad" or msg.component != self.spec.sensor.component:
                 self.counters.inc("ignored_measurements")

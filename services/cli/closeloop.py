@@ -73,7 +73,7 @@ def run_data_from_line_data(line_data: Any, config: Any, name: str = "recording"
     ok = np.abs(t[idx] - meas.index.values) <= 0.5 * dt + 1e-9
     y = np.full(t.size, np.nan)
     y[idx[ok]] = meas.values[ok]
-    flows, comps, refill = {}, {}, {}
+    flows, comps, refill, rpm = {}, {}, {}, {}
     for f in config.feeders:
         col = f"flow_{f.component}_kg_h"
         if col not in sig:
@@ -86,6 +86,10 @@ def run_data_from_line_data(line_data: Any, config: Any, name: str = "recording"
             r = sig[rcol].dropna()
             j = np.clip(np.searchsorted(r.index.values, t, side="right") - 1, 0, len(r) - 1)
             refill[f.name] = r.values[j] > 0.5
+        scol = f"screw_speed_{f.component}_rpm"
+        if scol in sig and sig[scol].notna().sum() >= 2:
+            sp = sig[scol].dropna()
+            rpm[f.name] = np.interp(t, sp.index.values, sp.values)
     tracers = []
     events = []
     for row in ev.to_dict("records") if len(ev) else []:
@@ -104,7 +108,12 @@ def run_data_from_line_data(line_data: Any, config: Any, name: str = "recording"
     if not tracers:
         tracers = list(config.tracers)
     inputs = LineInputs(
-        t_s=t, flows_kg_h=flows, components=comps, refilling=refill, tracers=tracers
+        t_s=t,
+        flows_kg_h=flows,
+        components=comps,
+        refilling=refill,
+        tracers=tracers,
+        screw_speed_rpm=rpm,
     )
     return RunData(t, y, inputs, events, name=name)
 

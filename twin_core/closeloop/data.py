@@ -62,6 +62,7 @@ class RunData:
             components=dict(inp.components),
             refilling={k: v[m] for k, v in inp.refilling.items()},
             tracers=[p for p in inp.tracers if t0 <= p.t_s < t1],
+            screw_speed_rpm={k: v[m] for k, v in inp.screw_speed_rpm.items()},
         )
         ev = [e for e in self.events if t0 <= float(e["t_s"]) < t1]
         return RunData(self.t_s[m], self.measured[m], sub, ev, self.name)

@@ -11,8 +11,10 @@
 - ``spectrum``: Welch power spectral density (Welch 1967), its log-log slope and the share of
   power below 1/300 Hz;
 - ``cross_correlation``: for each feeder, the largest |normalised cross-correlation| of the
-  residual with the flow deviation, at lags 0..max_xcorr_lag_s (the residual lags the input);
-- ``events``: event-locked mean residual per event kind over [t_e, t_e + window_s] with z;
+  residual with the flow deviation and (``<feeder>:screw_speed``) with the screw speed, at lags
+  0..max_xcorr_lag_s (the residual lags the input);
+- ``events``: event-locked mean residual per event kind over [t_e, t_e + window_s] with z
+  (the given events plus ``rpm_change``: steps of a screw speed);
 - ``pulse_tails``: for each tracer pulse, the mean residual in its front (rise), peak and tail
   windows (dead zones and bypasses show in the tail and the front).
 """
@@ -43,6 +45,58 @@ def n_effective(x: np.ndarray) -> float:
         return float(x.size)
     rho = float(np.clip(_acf(x, 1)[1], -0.99, 0.99))
     return float(max(2.0, x.size * (1 - rho) / (1 + rho)))
+
+
+def max_cross_correlation(
+    rc: np.ndarray, m: np.ndarray, x: np.ndarray, max_lag: int
+) -> tuple[float, int] | None:
+    """Largest |normalised cross-correlation| of a residual with an input, the residual lagging:
+
+        rho(L) = sum r[n + L] u[n] / sqrt(sum r[n + L]^2 sum u[n]^2),  u = x - mean(x),
+
+    over the samples with ``m[n + L]`` (Box & Jenkins, Time Series Analysis, ch. 11: the
+    cross-correlation check of a transfer-function model's residual against its input).
+    ``rc``: the residual, centred, 0 outside ``m``. Returns (rho at the best lag, lag in
+    samples), or None for a constant input.
+    """
+    u = np.asarray(x, dtype=float) - float(np.mean(x))
+    if u.std() == 0:
+        return None
+    vals = []
+    for lag in range(0, max_lag + 1):
+        a = rc[lag:]
+        b = u[: u.size - lag]
+        mm = m[lag:]
+        if mm.sum() < 10:
+            vals.append(0.0)
+            continue
+        den = np.sqrt(np.sum(a[mm] ** 2) * np.sum(b[mm] ** 2))
+        vals.append(float(np.sum(a[mm] * b[mm]) / den) if den > 0 else 0.0)
+    j = int(np.argmax(np.abs(vals)))
+    return vals[j], j
+
+
+def rpm_change_events(
+    t_s: np.ndarray, rpm: np.ndarray, source: str, rel: float = 0.05, window: int = 5
+) -> list[dict[str, Any]]:
+    """Steps of a screw speed as events ``{"t_s", "kind": "rpm_change", "source"}``.
+
+    A step is where the running median over ``window`` samples (robust to single spikes)
+    changes by more than ``rel`` of its median level within ``window`` samples; one event per
+    step (the first sample of each run of flagged samples).
+    """
+    t = np.asarray(t_s, dtype=float)
+    x = np.asarray(rpm, dtype=float)
+    if x.size < 2 * window + 1:
+        return []
+    med = signal.medfilt(x, kernel_size=2 * (window // 2) + 1)
+    level = float(np.median(np.abs(med)))
+    if level <= 0:
+        return []
+    d = np.abs(med[window:] - med[:-window])
+    flag = np.concatenate([np.zeros(window, bool), d > rel * level])
+    starts = np.flatnonzero(flag & ~np.concatenate([[False], flag[:-1]]))
+    return [{"t_s": float(t[i]), "kind": "rpm_change", "source": source} for i in starts]
 
 
 def residual_diagnostics(
@@ -109,27 +163,21 @@ def residual_diagnostics(
         "loglog_slope": slope_psd,
         "low_frequency_share": float(p[low].sum() / p.sum()) if p.sum() > 0 else 0.0,
     }
-    # cross-correlation with the feeder flows
+    # cross-correlation with the feeder flows and screw speeds
     xc: dict[str, Any] = {}
     if inputs is not None:
         nl = int(max_xcorr_lag_s / dt)
         rc = np.where(m, r - rr.mean(), 0.0)
-        for name, flow in inputs.flows_kg_h.items():
-            u = flow - flow.mean()
-            if u.std() == 0:
-                continue
-            vals = []
-            for L in range(0, nl + 1):
-                a = rc[L:]
-                b = u[: u.size - L]
-                mm = m[L:]
-                if mm.sum() < 10:
-                    vals.append(0.0)
-                    continue
-                den = np.sqrt(np.sum(a[mm] ** 2) * np.sum(b[mm] ** 2))
-                vals.append(float(np.sum(a[mm] * b[mm]) / den) if den > 0 else 0.0)
-            j = int(np.argmax(np.abs(vals)))
-            xc[name] = {"max_abs": float(abs(vals[j])), "value": vals[j], "lag_s": j * dt}
+        series = dict(inputs.flows_kg_h)
+        series.update({f"{k}:screw_speed": v for k, v in inputs.screw_speed_rpm.items()})
+        for name, u in series.items():
+            res_xc = max_cross_correlation(rc, m, u, nl)
+            if res_xc is not None:
+                xc[name] = {"max_abs": abs(res_xc[0]), "value": res_xc[0], "lag_s": res_xc[1] * dt}
+        # screw-speed changes are events too (the controller's or an operator's step)
+        events = list(events)
+        for name, u in inputs.screw_speed_rpm.items():
+            events += rpm_change_events(t, u, name)
     out["cross_correlation"] = xc
     # event-locked averages
     ev_out: dict[str, Any] = {}

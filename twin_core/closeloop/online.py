@@ -15,6 +15,7 @@ depend on the order or the speed at which the samples arrive.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -90,7 +91,9 @@ class OnlineCloseLoop:
         self.max_effects = int(max_effects)
         self.components = {f.name: f.component for f in config.feeders}
         self.model_ = LineModel(config, list(effects))
-        self._flows: dict[str, dict[int, tuple[float, bool]]] = {f: {} for f in self.components}
+        self._flows: dict[str, dict[int, tuple[float, bool, float]]] = {
+            f: {} for f in self.components
+        }
         self._meas: dict[int, float] = {}
         self._tracers: dict[tuple[float, str], TracerPulse] = {}
         self._events: list[dict[str, Any]] = []
@@ -107,15 +110,22 @@ class OnlineCloseLoop:
             self._t0 = k
             self._next_due = k + int(round(self.min_window_s / self.dt_s))
 
-    def add_flow(self, feeder: str, t: float, flow_kg_h: float, refilling: bool = False) -> None:
-        """A reported feeder flow (kg/h) at plant time t."""
+    def add_flow(
+        self,
+        feeder: str,
+        t: float,
+        flow_kg_h: float,
+        refilling: bool = False,
+        screw_speed_rpm: float = math.nan,
+    ) -> None:
+        """A reported feeder flow (kg/h) at plant time t (its refill flag and screw speed)."""
         if feeder not in self._flows:
             raise ValueError(f"feeder must be one of {sorted(self._flows)}, got {feeder!r}")
         if not np.isfinite(flow_kg_h) or flow_kg_h < 0:
             raise ValueError(f"flow_kg_h must be finite and >= 0, got {flow_kg_h!r}")
         k = self._tick(t)
         self._start(k)
-        self._flows[feeder][k] = (float(flow_kg_h), bool(refilling))
+        self._flows[feeder][k] = (float(flow_kg_h), bool(refilling), float(screw_speed_rpm))
 
     def add_measured(self, t: float, c_pct_w_w: float) -> None:
         """A reading of the NIR probe (% w/w) at plant time t."""
@@ -172,13 +182,15 @@ class OnlineCloseLoop:
         t = ks * self.dt_s
         flows: dict[str, np.ndarray] = {}
         refill: dict[str, np.ndarray] = {}
+        rpm: dict[str, np.ndarray] = {}
         for f, d in self._flows.items():
             q = np.full(ks.size, np.nan)
             r = np.zeros(ks.size, dtype=bool)
+            s = np.full(ks.size, np.nan)
             for i, k in enumerate(ks):
                 v = d.get(int(k))
                 if v is not None:
-                    q[i], r[i] = v
+                    q[i], r[i], s[i] = v
             good = np.isfinite(q)
             if not good.any():
                 raise ValueError(f"no flow of feeder {f!r} in window [{w.t_start_s}, {w.t_end_s}]")
@@ -187,9 +199,12 @@ class OnlineCloseLoop:
             idx[idx < 0] = int(np.argmax(good))
             flows[f] = q[idx]
             refill[f] = r
+            if np.isfinite(s).sum() >= 2:
+                ok = np.isfinite(s)
+                rpm[f] = np.interp(ks, ks[ok], s[ok])
         y = np.array([self._meas.get(int(k), np.nan) for k in ks])
         tracers = [p for p in self._tracers.values() if t[0] - 600.0 <= p.t_s <= t[-1]]
-        inputs = LineInputs(t, flows, dict(self.components), refill, tracers)
+        inputs = LineInputs(t, flows, dict(self.components), refill, tracers, rpm)
         events = [e for e in self._events if t[0] <= float(e["t_s"]) <= t[-1]]
         return t, y, inputs, events
 

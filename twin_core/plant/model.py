@@ -35,7 +35,8 @@ class LineInputs:
 
     t_s: uniform grid (s); flows_kg_h: feeder name -> reported flow (kg/h) on t_s;
     components: feeder name -> component; refilling: feeder name -> bool array (may be empty);
-    tracers: tracer pulses (their mass enters the inlet).
+    tracers: tracer pulses (their mass enters the inlet); screw_speed_rpm: feeder name ->
+    screw speed on t_s (diagnostics only; may be empty).
     """
 
     t_s: np.ndarray
@@ -43,6 +44,7 @@ class LineInputs:
     components: dict[str, str]
     refilling: dict[str, np.ndarray] = field(default_factory=dict)
     tracers: list[TracerPulse] = field(default_factory=list)
+    screw_speed_rpm: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.t_s = np.asarray(self.t_s, dtype=float)
@@ -62,6 +64,13 @@ class LineInputs:
                 raise ValueError(f"components must name the component of feeder {k!r}")
         for k, v in list(self.refilling.items()):
             self.refilling[k] = np.asarray(v, dtype=bool)
+        for k, v in list(self.screw_speed_rpm.items()):
+            v = np.asarray(v, dtype=float)
+            if v.shape != self.t_s.shape:
+                raise ValueError(
+                    f"screw_speed_rpm[{k}] must have shape {self.t_s.shape}, got {v.shape}"
+                )
+            self.screw_speed_rpm[k] = v
 
     @property
     def dt_s(self) -> float:

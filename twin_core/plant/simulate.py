@@ -102,6 +102,7 @@ class LineRun:
             components={k: f.component for k, f in self.feeders.items()},
             refilling={k: f.refilling.copy() for k, f in self.feeders.items()},
             tracers=list(self.config.tracers),
+            screw_speed_rpm={k: f.screw_speed_rpm.copy() for k, f in self.feeders.items()},
         )
 
     def predicted_declared(self) -> np.ndarray:
