@@ -13,8 +13,10 @@ are safe inside a zenoh key expression. A rejected value raises :class:`pydantic
 
 from __future__ import annotations
 
+import json
 import math
-from typing import Annotated, Any, ClassVar
+from pathlib import Path
+from typing import Annotated, Any, ClassVar, Self
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
 
@@ -43,10 +45,33 @@ Fraction = Annotated[float, Field(ge=0.0, le=1.0), AfterValidator(_finite)]
 Text = Annotated[str, StringConstraints(min_length=1, max_length=4096)]
 
 
+def read_mapping(path: str | Path) -> dict[str, Any]:
+    """The mapping held by a YAML (``.yaml``/``.yml``) or JSON file (an empty file: ``{}``)."""
+    p = Path(path)
+    if not p.exists():
+        raise ValueError(f"file does not exist: {p}")
+    text = p.read_text()
+    if p.suffix in (".yaml", ".yml"):
+        import yaml
+
+        data = yaml.safe_load(text)
+    else:
+        data = json.loads(text) if text.strip() else None
+    data = {} if data is None else data
+    if not isinstance(data, dict):
+        raise ValueError(f"{p} must hold a mapping, got {type(data).__name__}")
+    return data
+
+
 class StrictModel(BaseModel):
     """Base of every schema model (messages and configs): unknown fields and NaN/inf rejected."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> Self:
+        """Load and validate from a YAML (``.yaml``/``.yml``) or JSON file."""
+        return cls.model_validate(read_mapping(path))
 
 
 class Message(StrictModel):

@@ -23,7 +23,6 @@ Example (YAML or JSON with the same fields)::
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Literal
 
@@ -182,18 +181,6 @@ class BusConfig(StrictModel):
         if listen:
             return cls(listen=[endpoint], connect=[], **kwargs)
         return cls(listen=[], connect=[endpoint], **kwargs)
-
-    @classmethod
-    def from_file(cls, path: str | Path) -> BusConfig:
-        """Load from a YAML or JSON file."""
-        text = Path(path).read_text()
-        if str(path).endswith((".yaml", ".yml")):
-            import yaml
-
-            data = yaml.safe_load(text) or {}
-        else:
-            data = json.loads(text)
-        return cls.model_validate(data)
 
     def to_zenoh_dict(self) -> dict[str, Any]:
         """The zenoh 1.x configuration as nested dicts (JSON-serialisable)."""

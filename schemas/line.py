@@ -294,18 +294,6 @@ class LineSpec(StrictModel):
             }
         )
 
-    @classmethod
-    def from_file(cls, path: str | Path) -> LineSpec:
-        """Load a YAML (``.yaml``/``.yml``) or JSON file."""
-        text = Path(path).read_text()
-        if str(path).endswith((".yaml", ".yml")):
-            import yaml
-
-            data = yaml.safe_load(text) or {}
-        else:
-            data = json.loads(text)
-        return cls.model_validate(data)
-
     def to_file(self, path: str | Path) -> None:
         """Write as JSON (``.json``) or YAML (any other suffix)."""
         data = self.model_dump(mode="json")

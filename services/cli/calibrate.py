@@ -166,12 +166,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 # --------------------------------------------------------------------------- design
 def _read_mapping(path: str) -> dict[str, Any]:
-    text = Path(path).read_text()
-    if path.endswith((".yaml", ".yml")):
-        import yaml
+    from schemas.base import read_mapping
 
-        return yaml.safe_load(text) or {}
-    return json.loads(text)
+    return read_mapping(path)
 
 
 def _design(args: argparse.Namespace) -> int:

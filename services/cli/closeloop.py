@@ -26,17 +26,10 @@ log = logging.getLogger("twin.closeloop")
 
 def load_line_config(path: str | Path) -> Any:
     """A ``twin_core.plant.LineConfig`` from a YAML/JSON file (plain form or LineSpec)."""
+    from schemas.base import read_mapping
     from twin_core.plant import line_config_from_dict
 
-    text = Path(path).read_text()
-    if str(path).endswith((".yaml", ".yml")):
-        import yaml
-
-        data = yaml.safe_load(text) or {}
-    else:
-        data = json.loads(text)
-    if not isinstance(data, dict):
-        raise ValueError(f"config {path} must hold a mapping, got {type(data).__name__}")
+    data = read_mapping(path)
     if {"spec", "oos", "bus", "services", "dt_s"} & set(data):
         from schemas.line import LineSpec
 
