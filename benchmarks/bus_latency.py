@@ -16,12 +16,13 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import platform
-import socket
 import sys
 import threading
 import time
 
 import numpy as np
+
+from services.bus import free_port
 
 WARMUP = 200
 
@@ -35,12 +36,6 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def typed_event(seq: int):

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import os
 import platform
-import socket
 import subprocess
 import sys
 import tempfile
@@ -30,6 +29,7 @@ from mcap.writer import CompressionType, Writer
 
 from schemas.bus_config import BusConfig
 from schemas.messages import FeederFlow, MeasuredConcentration
+from services.bus import free_port
 from services.recording import McapRecorder, read_recording, replay, replay_to_bus
 
 FLOW = "twin/bench/feeder/api/flow"
@@ -45,12 +45,6 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def payloads(n: int) -> list[tuple[str, bytes, float]]:

@@ -31,6 +31,7 @@ import json
 import logging
 import os
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -56,6 +57,13 @@ def zenoh_config(config: BusConfig | None = None) -> zenoh.Config:
     """The zenoh ``Config`` of a :class:`BusConfig` (default: loopback peer, scouting off)."""
     config = config or BusConfig()
     return zenoh.Config.from_json5(json.dumps(config.to_zenoh_dict()))
+
+
+def free_port() -> int:
+    """A free TCP port on the loopback interface (for a router of tests, demos, benchmarks)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 def open_session(config: BusConfig | None = None) -> zenoh.Session:

@@ -8,7 +8,6 @@ message (same keys, same payload bytes, same order per key) and returns a summar
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -17,16 +16,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from schemas.bus_config import BusConfig
+from services.bus import free_port
 from services.recording import ReplayStats, read_recording, replay_to_bus, validate_messages
 
 BUNDLED_RECORDING = Path(__file__).resolve().parent.parent / "recordings" / "line1_30min.mcap"
-
-
-def free_port() -> int:
-    """A free TCP port on the loopback interface."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @dataclass

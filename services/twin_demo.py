@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import socket
 import threading
 import time
 from pathlib import Path
@@ -36,17 +35,11 @@ from schemas.messages import (
     RtdEstimate,
     ServiceHealth,
 )
+from services.bus import free_port
 
 log = logging.getLogger(__name__)
 
 BASE_CONFIG = Path(__file__).resolve().parent / "configs" / "line1.yaml"
-
-
-def free_port() -> int:
-    """A free TCP port on 127.0.0.1."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def spec_for_recording(rec: Any, port: int, state_dir: Path, base: Path = BASE_CONFIG) -> LineSpec:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -22,6 +21,7 @@ from services.bus import (
     Service,
     TypedPublisher,
     barrier,
+    free_port,
     live_services,
     open_session,
     ping,
@@ -30,12 +30,6 @@ from services.bus import (
 LINE = "tline"
 IN_KEY = keys.measured_concentration(LINE, "in")
 OUT_KEY = keys.measured_concentration(LINE, "out")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def wait_for(predicate, timeout_s: float = 10.0, period_s: float = 0.02) -> bool:

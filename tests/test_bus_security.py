@@ -5,7 +5,6 @@ security, exercised with a throwaway test CA made by the openssl CLI)."""
 from __future__ import annotations
 
 import shutil
-import socket
 import subprocess
 import time
 from pathlib import Path
@@ -14,19 +13,13 @@ import pytest
 import zenoh
 
 from schemas.bus_config import AccessControl, BusConfig, Tls, UserPassword
-from services.bus import open_session
+from services.bus import free_port, open_session
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI")
 
 NAMES = ("router", "diverter", "rogue", "recorder")
 DIVERT = "twin/l1/divert/command"
 FLOW = "twin/l1/feeder/api/flow"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _openssl(*args: str, cwd: Path) -> None:

@@ -16,9 +16,8 @@ import zenoh
 import zenoh.ext as zext
 
 from schemas.bus_config import BusConfig
-from services.bus import open_session
+from services.bus import free_port, open_session
 from services.common import HistoryFeed
-from services.twin_demo import free_port
 
 N_KEYS = 5
 

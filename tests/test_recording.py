@@ -8,7 +8,6 @@ import json
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -21,7 +20,7 @@ from mcap.reader import make_reader
 from schemas import keys
 from schemas.bus_config import BusConfig
 from schemas.messages import Event, FeederFlow, MeasuredConcentration
-from services.bus import Service
+from services.bus import Service, free_port
 from services.recording import (
     McapRecorder,
     load_line_data,
@@ -36,12 +35,6 @@ FLOW = keys.feeder_flow(LINE, "api")
 CONC = keys.measured_concentration(LINE, "nir1")
 EVENT = keys.event(LINE, "feeder", "api")
 TWIN = [sys.executable, "-m", "services.cli.main"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def flow(t: float, seq: int, comp: str = "api", refilling: bool = False) -> FeederFlow:

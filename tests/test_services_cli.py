@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from schemas.line import LineSpec
-from services.twin_demo import free_port
+from services.bus import free_port
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
 

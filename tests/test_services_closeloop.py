@@ -21,12 +21,11 @@ from schemas import keys
 from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import ServiceHealth
-from services.bus import open_session
+from services.bus import free_port, open_session
 from services.common import HistoryFeed
 from services.plant import Replayer, simulate_messages, write_recording
 from services.recording import read_recording
 from services.supervisor import Supervisor
-from services.twin_demo import free_port
 from twin_core.plant.model import LineModel
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"

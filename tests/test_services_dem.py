@@ -13,9 +13,8 @@ import zenoh
 from schemas import keys
 from schemas.line import LineSpec
 from schemas.messages import DemJobProgress, DemJobRequest, DemJobResult
-from services.bus import open_session
+from services.bus import free_port, open_session
 from services.supervisor import Supervisor
-from services.twin_demo import free_port
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
 

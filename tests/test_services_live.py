@@ -27,11 +27,10 @@ import zenoh
 from schemas.line import LineSpec
 from schemas.messages import DivertCommand, OosAlert, ServiceHealth
 from services.blender import blender_kernel
-from services.bus import open_session
+from services.bus import free_port, open_session
 from services.plant import Replayer, simulate_messages, write_recording
 from services.recording import read_recording
 from services.supervisor import Supervisor
-from services.twin_demo import free_port
 from twin_core.quality.lots import diversion_window
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"

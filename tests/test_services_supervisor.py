@@ -9,8 +9,8 @@ import time
 from pathlib import Path
 
 from schemas.line import LineSpec
+from services.bus import free_port
 from services.supervisor import Supervisor
-from services.twin_demo import free_port
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
 
