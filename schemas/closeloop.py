@@ -134,6 +134,11 @@ class CloseLoopReport(StrictModel):
     augmented_model: dict[str, Any]
     n_model_evaluations: int = Field(ge=0)
     figures: list[str] = Field(default_factory=list)
+    noise: dict[str, Any] = Field(
+        default_factory=dict,
+        description="NIR noise used by the decisions: source 'declared' or 'estimated' "
+        "(twin_core.closeloop.noise) and its white_sd, pink_sd, proportional_rel",
+    )
 
 
 class EffectSpec(StrictModel):

@@ -221,8 +221,29 @@ def cmd_close_loop(args: argparse.Namespace) -> int:
         train_fraction=args.train_fraction,
         skip_s=args.skip_s,
     )
-    result = close_loop(data, LineModel(config), opts, recording=str(args.recording))
+    model = LineModel(config)
+    if args.noise == "estimate":
+        from twin_core.closeloop.noise import with_estimated_noise
+
+        model, est = with_estimated_noise(data, model)
+        noise = {"source": "estimated", **est.to_dict()}
+        log.info(
+            "noise estimated on %d quiet samples: white x%.2f, pink_sd %.3f %% w/w",
+            est.n_quiet,
+            est.white_factor,
+            est.pink_sd,
+        )
+    else:
+        n = config.sensor.noise
+        noise = {
+            "source": "declared",
+            "white_sd": n.white_sd,
+            "pink_sd": n.pink_sd,
+            "proportional_rel": n.proportional_rel,
+        }
+    result = close_loop(data, model, opts, recording=str(args.recording))
     report = result.to_dict()
+    report["noise"] = noise
     if args.figures:
         report["figures"] = write_figures(result, args.figures)
     rep = CloseLoopReport.model_validate(report)
@@ -270,4 +291,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--split", choices=("tail", "blocks"), default="tail")
     p.add_argument("--train-fraction", type=float, default=0.6)
     p.add_argument("--skip-s", type=float, default=0.0, help="ignore the first seconds (start-up)")
+    p.add_argument(
+        "--noise",
+        choices=("declared", "estimate"),
+        default="declared",
+        help="NIR noise levels for the decisions: as declared in the config, or estimated from "
+        "the recording's quiet samples (twin_core.closeloop.noise)",
+    )
     p.set_defaults(func=cmd_close_loop)

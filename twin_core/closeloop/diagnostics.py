@@ -82,8 +82,10 @@ def rpm_change_events(
     """Steps of a screw speed as events ``{"t_s", "kind": "rpm_change", "source"}``.
 
     A step is where the running median over ``window`` samples (robust to single spikes)
-    changes by more than ``rel`` of its median level within ``window`` samples; one event per
-    step (the first sample of each run of flagged samples).
+    changes within ``window`` samples by more than ``rel`` of its median level and by more than
+    six times the speed's own sample noise (1.4826 MAD of the first differences / sqrt 2: a
+    controller's normal hunting is not a step); one event per step (the first sample of each
+    run of flagged samples).
     """
     t = np.asarray(t_s, dtype=float)
     x = np.asarray(rpm, dtype=float)
@@ -93,8 +95,10 @@ def rpm_change_events(
     level = float(np.median(np.abs(med)))
     if level <= 0:
         return []
+    dx = np.diff(x)
+    noise = 1.4826 * float(np.median(np.abs(dx - np.median(dx)))) / np.sqrt(2.0)
     d = np.abs(med[window:] - med[:-window])
-    flag = np.concatenate([np.zeros(window, bool), d > rel * level])
+    flag = np.concatenate([np.zeros(window, bool), d > max(rel * level, 6.0 * noise)])
     starts = np.flatnonzero(flag & ~np.concatenate([[False], flag[:-1]]))
     return [{"t_s": float(t[i]), "kind": "rpm_change", "source": source} for i in starts]
 

@@ -1,0 +1,137 @@
+"""The NIR noise levels estimated from the recording itself (instead of the declared ones).
+
+The close-loop's decisions weigh the residual with the probe's noise (white, signal-proportional
+and 1/f, ``twin_core.plant.NIRNoise``); a real probe's levels are seldom known well. On the
+*quiet* samples of a record -- away from every event (refills, tracer pulses, disturbances)
+by the blender's lot span, where the declared model's structural errors have
+little to show -- the residual r = measured - predicted is mostly probe noise. Per contiguous
+quiet segment (Hampel outliers replaced, mean removed) its periodogram is taken, and over all
+segments the one-sided spectral density is fitted by non-negative least squares as
+
+    S(f) = w + p1 / f
+
+(white plus 1/f noise; the split of ``twin_core.rtd.noise.characterize``, after Timmer & Koenig
+1995 for the 1/f process). The white-like variance w fs / 2 sets the level of the declared
+white + proportional pair (the probe's signal hardly moves in quiet segments, so the two cannot
+be told apart there: both are scaled by one factor, keeping the declared shape), and p1 gives
+the 1/f standard deviation over the whole record, pink_sd^2 = p1 H(N/2) with H the harmonic
+number (the discrete band 1/N .. 1/2 of ``twin_core.plant.nir.pink_noise``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.optimize import nnls
+from scipy.signal import periodogram
+
+from twin_core.closeloop.data import RunData, hampel
+from twin_core.plant.config import LineConfig, NIRNoise
+from twin_core.plant.model import LineModel, rtd_kernel
+
+
+@dataclass
+class NoiseEstimate:
+    """Estimated NIR noise: the ``noise`` to use and how it was found."""
+
+    noise: NIRNoise
+    white_factor: float
+    pink_sd: float
+    n_quiet: int
+    n_segments: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "white_sd": float(self.noise.white_sd),
+            "pink_sd": float(self.noise.pink_sd),
+            "proportional_rel": float(self.noise.proportional_rel),
+            "white_factor": float(self.white_factor),
+            "n_quiet": int(self.n_quiet),
+            "n_segments": int(self.n_segments),
+        }
+
+
+def quiet_mask(data: RunData, config: LineConfig, margin_s: float = 30.0) -> np.ndarray:
+    """Samples at least ``margin_s`` + the blender's t(F = 0.995) after, and 5 s before, every
+    event and tracer pulse, and past the first t(F = 0.995) of the record. (Flow changes are
+    the model's inputs and stay in.)"""
+    t = data.t_s
+    dt = float(t[1] - t[0])
+    tk = np.arange(0.0, 3600.0, dt)
+    e = rtd_kernel(config.blender, tk)
+    f = np.cumsum(e) * dt
+    span = float(tk[np.argmax(f >= 0.995)]) if f[-1] >= 0.995 else float(tk[-1])
+    m = np.isfinite(data.measured) & (t >= t[0] + span)
+    events = list(data.events)
+    for p in data.inputs.tracers:
+        events.append({"t_s": p.t_s})
+    for ev in events:
+        t0 = float(ev["t_s"])
+        m &= ~((t >= t0 - 5.0) & (t < t0 + span + margin_s))
+    return m
+
+
+def _segments(mask: np.ndarray, min_len: int) -> list[tuple[int, int]]:
+    d = np.diff(np.concatenate([[0], mask.astype(int), [0]]))
+    starts, ends = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+    return [(a, b) for a, b in zip(starts, ends) if b - a >= min_len]
+
+
+def estimate_nir_noise(
+    data: RunData, model: LineModel, min_segment: int = 64, margin_s: float = 30.0
+) -> NoiseEstimate:
+    """Estimate the NIR noise levels from the quiet samples of ``data`` (see the module).
+
+    Returns the declared noise with ``white_sd`` and ``proportional_rel`` scaled by the
+    estimated white-like level and ``pink_sd`` replaced by its estimate. Raises ValueError when
+    the record has fewer than ``4 * min_segment`` quiet samples in segments of ``min_segment``.
+    """
+    cfg = model.config
+    declared = cfg.sensor.noise
+    pred = model.predict(data.inputs)
+    r = data.measured - pred
+    segs = _segments(quiet_mask(data, cfg, margin_s), min_segment)
+    n_quiet = int(sum(b - a for a, b in segs))
+    if n_quiet < 4 * min_segment:
+        raise ValueError(
+            f"record has {n_quiet} quiet samples in segments of >= {min_segment}; need "
+            f">= {4 * min_segment} to estimate the noise (declare it instead)"
+        )
+    dt = float(data.t_s[1] - data.t_s[0])
+    fs = 1.0 / dt
+    fx, px, wts = [], [], []
+    decl_var = []
+    for a, b in segs:
+        seg, _ = hampel(r[a:b])
+        f, p = periodogram(seg, fs=fs, detrend="constant", scaling="density")
+        fx.append(f[1:])
+        px.append(p[1:])
+        wts.append(np.full(f.size - 1, 1.0))
+        decl_var.append(declared.white_sd**2 + (declared.proportional_rel * np.abs(pred[a:b])) ** 2)
+    f_all = np.concatenate(fx)
+    p_all = np.concatenate(px)
+    (w, p1), _ = nnls(np.column_stack([np.ones_like(f_all), 1.0 / f_all]), p_all)
+    var_white = w * fs / 2.0
+    decl = float(np.mean(np.concatenate(decl_var)))
+    k = float(np.sqrt(var_white / decl)) if decl > 0 else 1.0
+    n = data.t_s.size
+    harmonic = float(np.log(max(n // 2, 1)) + np.euler_gamma)
+    pink = float(np.sqrt(p1 * fs * dt * harmonic)) if p1 > 0 else 0.0
+    noise = dataclasses.replace(
+        declared,
+        white_sd=declared.white_sd * k if decl > 0 else float(np.sqrt(var_white)),
+        proportional_rel=declared.proportional_rel * k,
+        pink_sd=pink,
+    )
+    return NoiseEstimate(noise, k, pink, n_quiet, len(segs))
+
+
+def with_estimated_noise(data: RunData, model: LineModel) -> tuple[LineModel, NoiseEstimate]:
+    """The model with its sensor noise replaced by :func:`estimate_nir_noise` (same effects)."""
+    est = estimate_nir_noise(data, model)
+    cfg = model.config
+    sensor = dataclasses.replace(cfg.sensor, noise=est.noise)
+    return LineModel(dataclasses.replace(cfg, sensor=sensor), list(model.effects)), est
