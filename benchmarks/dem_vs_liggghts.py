@@ -3,10 +3,13 @@
 Both start from the same loose lattice (``benchmarks/dem_throughput.py``), settle for the same
 number of steps (not timed), then run ``--steps`` timed steps: LIGGGHTS' own "Loop time" of its
 second ``run`` against our wall time of the same number of steps, one numba thread (and
-optionally two). Runs alternate (LIGGGHTS, ours, LIGGGHTS, ours...) so that the load of the shared
-machine hits both alike. Needs the ``liggghts`` executable (Debian package ``liggghts``).
+optionally two), with each pair scheme asked for (``Simulation.pair_scheme``: ``auto`` picks the
+serial scatter on one thread; ``two_pass`` is the parallel buffer-and-gather scheme). Runs
+alternate (LIGGGHTS, ours, LIGGGHTS, ours...) so that the load of the shared machine hits both
+alike. Needs the ``liggghts`` executable (Debian package ``liggghts``).
 
     python benchmarks/dem_vs_liggghts.py [--n 6000] [--case bed|drum] [--repeat 2]
+        [--threads 1] [--schemes auto two_pass]
 """
 
 from __future__ import annotations
@@ -67,10 +70,13 @@ def run_liggghts(exe: str, n: int, case: str, settle: int, steps: int, skin: flo
     return int(na) * int(k) / float(t)
 
 
-def run_ours(n: int, case: str, settle: int, steps: int, threads: int) -> float:
+def run_ours(
+    n: int, case: str, settle: int, steps: int, threads: int, scheme: str = "auto"
+) -> float:
     """Particle-steps/s of our engine on the same case."""
     numba.set_num_threads(threads)
     sim = bench.make_sim(n, case)
+    sim.pair_scheme = scheme
     sim.run(settle * bench.DT)
     return bench.measure(sim, steps)
 
@@ -83,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--threads", type=int, nargs="+", default=[1])
+    ap.add_argument("--schemes", nargs="+", default=["auto"],
+                    choices=["auto", "scatter", "two_pass"])  # fmt: skip
     ap.add_argument("--liggghts", default=shutil.which("liggghts") or "liggghts")
     args = ap.parse_args(argv)
     if shutil.which(args.liggghts) is None:
@@ -93,22 +101,24 @@ def main(argv: list[str] | None = None) -> int:
     bench.make_sim(200, "bed").run(5 * bench.DT)
     print(f"numba compile/first call: {time.perf_counter() - t0:.2f} s (not in the rates)")
     res: dict[str, list[float]] = {"liggghts": []}
-    for th in args.threads:
-        res[f"ours_{th}t"] = []
+    runs = [(th, sc) for th in args.threads for sc in args.schemes]
+    for th, sc in runs:
+        res[f"ours {th}t {sc}"] = []
     for rep in range(args.repeat):
         r = run_liggghts(args.liggghts, args.n, args.case, args.settle, args.steps, skin)
         res["liggghts"].append(r)
         print(f"[{rep}] LIGGGHTS 1 process : {r / 1e6:.3f} M particle-steps/s", flush=True)
-        for th in args.threads:
-            r = run_ours(args.n, args.case, args.settle, args.steps, th)
-            res[f"ours_{th}t"].append(r)
-            print(f"[{rep}] ours {th} thread(s)  : {r / 1e6:.3f} M particle-steps/s", flush=True)
+        for th, sc in runs:
+            o = run_ours(args.n, args.case, args.settle, args.steps, th, sc)
+            res[f"ours {th}t {sc}"].append(o)
+            print(f"[{rep}] ours {th} thread(s) {sc}: {o / 1e6:.3f} M particle-steps/s "
+                  f"(ratio to this LIGGGHTS run {o / r:.2f})", flush=True)  # fmt: skip
     lg = float(np.median(res["liggghts"]))
     print(f"\nN={args.n} case={args.case} steps={args.steps} (medians of {args.repeat})")
     print(f"LIGGGHTS 1 process: {lg / 1e6:.3f} M particle-steps/s")
-    for th in args.threads:
-        o = float(np.median(res[f"ours_{th}t"]))
-        print(f"ours {th} thread(s): {o / 1e6:.3f} M particle-steps/s, ratio ours/LIGGGHTS = "
+    for th, sc in runs:
+        o = float(np.median(res[f"ours {th}t {sc}"]))
+        print(f"ours {th} thread(s) {sc}: {o / 1e6:.3f} M particle-steps/s, ratio ours/LIGGGHTS = "
               f"{o / lg:.2f}")  # fmt: skip
     return 0
 

@@ -25,10 +25,12 @@ Parallel scheme (no data races, deterministic for any thread count)
   ``nb[i, k]``; its tangential history is ``hist[i, k]`` (from i's point of view).
 - Pass 1 (``prange`` over particles): each particle evaluates its owned pairs once and writes the
   pair force/torques into ``pf[i, k]`` (only its own rows: no race).
-- Pass 2 (``prange`` over particles): each particle sums, in a fixed order, its owned slots and the
-  slots of the pairs owned by others that involve it (reverse list ``rev_o, rev_k``; Newton's third
-  law), then adds walls, meshes and gravity, and applies the half kick. Every particle writes only
-  its own rows.
+- Pass 2 (``prange`` over particles): each particle sums, in a fixed order, the slots of the pairs
+  owned by others that involve it (reverse list ``rev_o, rev_k``, owners ascending; Newton's third
+  law), then its owned slots, then adds walls, meshes and gravity, and applies the half kick.
+  Every particle writes only its own rows.
+- One thread: :func:`pair_scatter` replaces pass 1 and the pair part of pass 2 (each pair added
+  straight to both particles, in the gather's order: bit-identical sums, no pair buffer).
 - On a neighbour rebuild (Verlet skin criterion), particles are re-sorted by cell; new lists are
   built against the old ones through the permutation, so each history is carried over (with its sign
   flipped when the owner of a pair changes).
@@ -228,9 +230,123 @@ def wall_contact(
 # --------------------------------------------------------------------------------------------
 # pair forces: pass 1 (owned pairs) and pass 2 (gather + walls + meshes + gravity + kick)
 # --------------------------------------------------------------------------------------------
+@njit(cache=True, inline="always")
+def _pair_contact(P, IA, hist, pt, i, k, j, dx, dy, dz, d2, rs, dt):
+    """Contact law of the owned pair (i, j) in contact (``d2 < rs^2``, separation ``d`` from i to
+    j); updates ``hist[i, k]``. Returns the force on i (3), n x F_t (3), the rolling torque on i
+    (3) and delta/2."""
+    ri = P[i, 9]
+    rj = P[j, 9]
+    mi = P[i, 10]
+    mati = IA[i, 1]
+    matj = IA[j, 1]
+    e_star = pt[0, mati, matj]
+    g_star = pt[1, mati, matj]
+    mu = pt[2, mati, matj]
+    mur = pt[3, mati, matj]
+    dmp = pt[4, mati, matj]
+    d = math.sqrt(d2)
+    inv_d = 1.0 / d
+    nx, ny, nz = dx * inv_d, dy * inv_d, dz * inv_d
+    delta = rs - d
+    mj = P[j, 10]
+    r_star = ri * rj / rs
+    m_star = mi * mj / (mi + mj)
+    ci = ri - 0.5 * delta
+    cj = rj - 0.5 * delta
+    wxi, wyi, wzi = P[i, 6], P[i, 7], P[i, 8]
+    wxj, wyj, wzj = P[j, 6], P[j, 7], P[j, 8]
+    ax = ci * wxi + cj * wxj
+    ay = ci * wyi + cj * wyj
+    az = ci * wzi + cj * wzj
+    rvx = P[i, 3] - P[j, 3] + (ay * nz - az * ny)
+    rvy = P[i, 4] - P[j, 4] + (az * nx - ax * nz)
+    rvz = P[i, 5] - P[j, 5] + (ax * ny - ay * nx)
+    vn = rvx * nx + rvy * ny + rvz * nz
+    vtx = rvx - vn * nx
+    vty = rvy - vn * ny
+    vtz = rvz - vn * nz
+    # dashpots use the same half-step velocities (a velocity predicted from the previous
+    # force, v + F/m dt/2, is unstable for strongly damped, many-contact beds)
+    pvx, pvy, pvz = rvx, rvy, rvz
+    pvn = pvx * nx + pvy * ny + pvz * nz
+    ptx = pvx - pvn * nx
+    pty = pvy - pvn * ny
+    ptz = pvz - pvn * nz
+    sq = math.sqrt(r_star * delta)
+    sn = 2.0 * e_star * sq
+    st = 8.0 * g_star * sq
+    fn = _TWO_THIRDS * sn * delta + dmp * math.sqrt(sn * m_star) * pvn
+    if fn < 0.0:
+        fn = 0.0
+    hx, hy, hz = hist[i, k, 0], hist[i, k, 1], hist[i, k, 2]
+    h2 = hx * hx + hy * hy + hz * hz
+    if h2 > 0.0:
+        hn = hx * nx + hy * ny + hz * nz
+        hx -= hn * nx
+        hy -= hn * ny
+        hz -= hn * nz
+        h2n = hx * hx + hy * hy + hz * hz
+        if h2n > 0.0:
+            s = math.sqrt(h2 / h2n)
+            hx *= s
+            hy *= s
+            hz *= s
+    hx += vtx * dt
+    hy += vty * dt
+    hz += vtz * dt
+    ct = dmp * math.sqrt(st * m_star)
+    ftx = -st * hx - ct * ptx
+    fty = -st * hy - ct * pty
+    ftz = -st * hz - ct * ptz
+    ft2 = ftx * ftx + fty * fty + ftz * ftz
+    fmax = mu * fn
+    if ft2 > fmax * fmax:
+        if ft2 > 0.0:
+            s = fmax / math.sqrt(ft2)
+            ftx *= s
+            fty *= s
+            ftz *= s
+            hx = -(ftx + ct * ptx) / st
+            hy = -(fty + ct * pty) / st
+            hz = -(ftz + ct * ptz) / st
+    hist[i, k, 0] = hx
+    hist[i, k, 1] = hy
+    hist[i, k, 2] = hz
+    trx = 0.0
+    try_ = 0.0
+    trz = 0.0
+    if mur > 0.0:
+        rwx = wxi - wxj
+        rwy = wyi - wyj
+        rwz = wzi - wzj
+        wm = math.sqrt(rwx * rwx + rwy * rwy + rwz * rwz)
+        if wm > 0.0:
+            tr = mur * fn * r_star
+            tcap = wm / (dt * (P[i, 12] + P[j, 12]))
+            if tr > tcap:
+                tr = tcap
+            trx = -tr * rwx / wm
+            try_ = -tr * rwy / wm
+            trz = -tr * rwz / wm
+    return (
+        -fn * nx + ftx,
+        -fn * ny + fty,
+        -fn * nz + ftz,
+        ny * ftz - nz * fty,
+        nz * ftx - nx * ftz,
+        nx * fty - ny * ftx,
+        trx,
+        try_,
+        trz,
+        0.5 * delta,
+    )
+
+
 @njit(cache=True, parallel=True)
 def pair_pass(n, P, F, IA, nb, nown, hist, pf, pt, dom, per, dt):
-    """Pass 1: evaluate each owned pair once; write ``pf[i, k]`` and update ``hist[i, k]``.
+    """Pass 1 (parallel scheme): evaluate each owned pair once; write ``pf[i, k]`` and update
+    ``hist[i, k]``.
 
     ``pf[i, k]`` = force on i (3), n x F_t (3), rolling torque on i (3), delta/2 (1).
     Velocities in ``P`` are at the half step (t + dt/2): they integrate the tangential spring
@@ -241,12 +357,56 @@ def pair_pass(n, P, F, IA, nb, nown, hist, pf, pt, dom, per, dt):
     p0, p1, p2 = per[0] != 0, per[1] != 0, per[2] != 0
     for i in prange(n):
         xi, yi, zi = P[i, 0], P[i, 1], P[i, 2]
-        vxi, vyi, vzi = P[i, 3], P[i, 4], P[i, 5]
-        wxi, wyi, wzi = P[i, 6], P[i, 7], P[i, 8]
         ri = P[i, 9]
-        mi = P[i, 10]
-        invii = P[i, 12]
-        mati = IA[i, 1]
+        for k in range(nown[i]):
+            j = nb[i, k]
+            dx = _min_image(P[j, 0] - xi, l0, p0)
+            dy = _min_image(P[j, 1] - yi, l1, p1)
+            dz = _min_image(P[j, 2] - zi, l2, p2)
+            rs = ri + P[j, 9]
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 >= rs * rs:
+                # not in contact: flag the slot (delta/2 = 0) and clear a stale history (reads are
+                # cheaper than writes: most slots are already clear)
+                pf[i, k, 9] = 0.0
+                _clear3(hist, i, k)
+                continue
+            f0, f1, f2, t0, t1, t2, r0, r1, r2, hd = _pair_contact(
+                P, IA, hist, pt, i, k, j, dx, dy, dz, d2, rs, dt
+            )
+            pf[i, k, 0] = f0
+            pf[i, k, 1] = f1
+            pf[i, k, 2] = f2
+            pf[i, k, 3] = t0
+            pf[i, k, 4] = t1
+            pf[i, k, 5] = t2
+            pf[i, k, 6] = r0
+            pf[i, k, 7] = r1
+            pf[i, k, 8] = r2
+            pf[i, k, 9] = hd
+
+
+@njit(cache=True)
+def pair_scatter(n, P, IA, nb, nown, hist, acc, pt, dom, per, dt):
+    """Serial scheme (one thread): evaluate each owned pair once and add its force and torques
+    straight to both particles' sums ``acc[i]`` and ``acc[j]`` (Newton's third law), without the
+    pair buffer of :func:`pair_pass`.
+
+    Particles are visited in index order and an owner i is always < j, so particle j receives the
+    contributions of its owners (ascending) before its own slots (ascending): the order in which
+    :func:`gather_pass` sums the reverse then the owned slots. The sums are therefore bit-identical
+    to the parallel scheme.
+    """
+    l0, l1, l2 = dom[6], dom[7], dom[8]
+    p0, p1, p2 = per[0] != 0, per[1] != 0, per[2] != 0
+    for i in range(n):
+        for a in range(6):
+            acc[i, a] = 0.0
+    for i in range(n):
+        xi, yi, zi = P[i, 0], P[i, 1], P[i, 2]
+        ri = P[i, 9]
+        fx, fy, fz = acc[i, 0], acc[i, 1], acc[i, 2]
+        tx, ty, tz = acc[i, 3], acc[i, 4], acc[i, 5]
         for k in range(nown[i]):
             j = nb[i, k]
             dx = _min_image(P[j, 0] - xi, l0, p0)
@@ -256,113 +416,31 @@ def pair_pass(n, P, F, IA, nb, nown, hist, pf, pt, dom, per, dt):
             rs = ri + rj
             d2 = dx * dx + dy * dy + dz * dz
             if d2 >= rs * rs:
-                # not in contact: flag the slot (delta/2 = 0) and clear a stale history (reads are
-                # cheaper than writes: most slots are already clear)
-                pf[i, k, 9] = 0.0
-                if hist[i, k, 0] != 0.0 or hist[i, k, 1] != 0.0 or hist[i, k, 2] != 0.0:
-                    hist[i, k, 0] = 0.0
-                    hist[i, k, 1] = 0.0
-                    hist[i, k, 2] = 0.0
+                _clear3(hist, i, k)
                 continue
-            matj = IA[j, 1]
-            e_star = pt[0, mati, matj]
-            g_star = pt[1, mati, matj]
-            mu = pt[2, mati, matj]
-            mur = pt[3, mati, matj]
-            dmp = pt[4, mati, matj]
-            d = math.sqrt(d2)
-            inv_d = 1.0 / d
-            nx, ny, nz = dx * inv_d, dy * inv_d, dz * inv_d
-            delta = rs - d
-            mj = P[j, 10]
-            r_star = ri * rj / rs
-            m_star = mi * mj / (mi + mj)
-            ci = ri - 0.5 * delta
-            cj = rj - 0.5 * delta
-            wxj, wyj, wzj = P[j, 6], P[j, 7], P[j, 8]
-            ax = ci * wxi + cj * wxj
-            ay = ci * wyi + cj * wyj
-            az = ci * wzi + cj * wzj
-            rvx = vxi - P[j, 3] + (ay * nz - az * ny)
-            rvy = vyi - P[j, 4] + (az * nx - ax * nz)
-            rvz = vzi - P[j, 5] + (ax * ny - ay * nx)
-            vn = rvx * nx + rvy * ny + rvz * nz
-            vtx = rvx - vn * nx
-            vty = rvy - vn * ny
-            vtz = rvz - vn * nz
-            # dashpots use the same half-step velocities (a velocity predicted from the previous
-            # force, v + F/m dt/2, is unstable for strongly damped, many-contact beds)
-            pvx, pvy, pvz = rvx, rvy, rvz
-            pvn = pvx * nx + pvy * ny + pvz * nz
-            ptx = pvx - pvn * nx
-            pty = pvy - pvn * ny
-            ptz = pvz - pvn * nz
-            sq = math.sqrt(r_star * delta)
-            sn = 2.0 * e_star * sq
-            st = 8.0 * g_star * sq
-            fn = _TWO_THIRDS * sn * delta + dmp * math.sqrt(sn * m_star) * pvn
-            if fn < 0.0:
-                fn = 0.0
-            hx, hy, hz = hist[i, k, 0], hist[i, k, 1], hist[i, k, 2]
-            h2 = hx * hx + hy * hy + hz * hz
-            if h2 > 0.0:
-                hn = hx * nx + hy * ny + hz * nz
-                hx -= hn * nx
-                hy -= hn * ny
-                hz -= hn * nz
-                h2n = hx * hx + hy * hy + hz * hz
-                if h2n > 0.0:
-                    s = math.sqrt(h2 / h2n)
-                    hx *= s
-                    hy *= s
-                    hz *= s
-            hx += vtx * dt
-            hy += vty * dt
-            hz += vtz * dt
-            ct = dmp * math.sqrt(st * m_star)
-            ftx = -st * hx - ct * ptx
-            fty = -st * hy - ct * pty
-            ftz = -st * hz - ct * ptz
-            ft2 = ftx * ftx + fty * fty + ftz * ftz
-            fmax = mu * fn
-            if ft2 > fmax * fmax:
-                if ft2 > 0.0:
-                    s = fmax / math.sqrt(ft2)
-                    ftx *= s
-                    fty *= s
-                    ftz *= s
-                    hx = -(ftx + ct * ptx) / st
-                    hy = -(fty + ct * pty) / st
-                    hz = -(ftz + ct * ptz) / st
-            hist[i, k, 0] = hx
-            hist[i, k, 1] = hy
-            hist[i, k, 2] = hz
-            pf[i, k, 0] = -fn * nx + ftx
-            pf[i, k, 1] = -fn * ny + fty
-            pf[i, k, 2] = -fn * nz + ftz
-            pf[i, k, 3] = ny * ftz - nz * fty
-            pf[i, k, 4] = nz * ftx - nx * ftz
-            pf[i, k, 5] = nx * fty - ny * ftx
-            trx = 0.0
-            try_ = 0.0
-            trz = 0.0
-            if mur > 0.0:
-                rwx = wxi - wxj
-                rwy = wyi - wyj
-                rwz = wzi - wzj
-                wm = math.sqrt(rwx * rwx + rwy * rwy + rwz * rwz)
-                if wm > 0.0:
-                    tr = mur * fn * r_star
-                    tcap = wm / (dt * (invii + P[j, 12]))
-                    if tr > tcap:
-                        tr = tcap
-                    trx = -tr * rwx / wm
-                    try_ = -tr * rwy / wm
-                    trz = -tr * rwz / wm
-            pf[i, k, 6] = trx
-            pf[i, k, 7] = try_
-            pf[i, k, 8] = trz
-            pf[i, k, 9] = 0.5 * delta
+            f0, f1, f2, t0, t1, t2, r0, r1, r2, hd = _pair_contact(
+                P, IA, hist, pt, i, k, j, dx, dy, dz, d2, rs, dt
+            )
+            c = ri - hd
+            fx += f0
+            fy += f1
+            fz += f2
+            tx += c * t0 + r0
+            ty += c * t1 + r1
+            tz += c * t2 + r2
+            c = rj - hd
+            acc[j, 0] -= f0
+            acc[j, 1] -= f1
+            acc[j, 2] -= f2
+            acc[j, 3] += c * t0 - r0
+            acc[j, 4] += c * t1 - r1
+            acc[j, 5] += c * t2 - r2
+        acc[i, 0] = fx
+        acc[i, 1] = fy
+        acc[i, 2] = fz
+        acc[i, 3] = tx
+        acc[i, 4] = ty
+        acc[i, 5] = tz
 
 
 @njit(cache=True)
@@ -437,12 +515,17 @@ def _dist_point_tri(px, py, pz, tri):
 
 @njit(cache=True, parallel=True)
 def gather_pass(
-    n, P, F, IA, nown, pf, nrev, rev_o, rev_k,
+    n, P, F, IA, nown, pf, nrev, rev_o, rev_k, use_acc, acc,
     planes, cyls, whist,
     ntri, tri_nb, thist, tri_tmp, tri_x, tri_mesh, mesh_par,
     pt, dom, per, grav, dt, t, predict_next, XB, rm, sinks, disp2,
 ):  # fmt: skip
     """Pass 2: total force/torque on each particle (pairs, walls, meshes, gravity); half kick.
+
+    Pair sums: with ``use_acc`` they are read from ``acc`` (filled by :func:`pair_scatter`);
+    otherwise they are gathered from ``pf``: first the slots of the pairs owned by others
+    (reverse list, owners ascending), then the owned slots (ascending), the order in which
+    :func:`pair_scatter` adds them, so both schemes give bit-identical sums.
 
     With ``predict_next`` it also does the work of :func:`predict` for the next step (fused to save
     a parallel region per step).
@@ -459,36 +542,40 @@ def gather_pass(
     hdt = 0.5 * dt
     for i in prange(n):
         ri = P[i, 9]
-        fx = 0.0
-        fy = 0.0
-        fz = 0.0
-        tx = 0.0
-        ty = 0.0
-        tz = 0.0
-        for k in range(nown[i]):
-            hd = pf[i, k, 9]
-            if hd == 0.0:  # slot not in contact (its other entries are stale)
-                continue
-            c = ri - hd
-            fx += pf[i, k, 0]
-            fy += pf[i, k, 1]
-            fz += pf[i, k, 2]
-            tx += c * pf[i, k, 3] + pf[i, k, 6]
-            ty += c * pf[i, k, 4] + pf[i, k, 7]
-            tz += c * pf[i, k, 5] + pf[i, k, 8]
-        for q in range(nrev[i]):
-            o = rev_o[i, q]
-            s = rev_k[i, q]
-            hd = pf[o, s, 9]
-            if hd == 0.0:
-                continue
-            c = ri - hd
-            fx -= pf[o, s, 0]
-            fy -= pf[o, s, 1]
-            fz -= pf[o, s, 2]
-            tx += c * pf[o, s, 3] - pf[o, s, 6]
-            ty += c * pf[o, s, 4] - pf[o, s, 7]
-            tz += c * pf[o, s, 5] - pf[o, s, 8]
+        if use_acc:
+            fx, fy, fz = acc[i, 0], acc[i, 1], acc[i, 2]
+            tx, ty, tz = acc[i, 3], acc[i, 4], acc[i, 5]
+        else:
+            fx = 0.0
+            fy = 0.0
+            fz = 0.0
+            tx = 0.0
+            ty = 0.0
+            tz = 0.0
+            for q in range(nrev[i]):
+                o = rev_o[i, q]
+                s = rev_k[i, q]
+                hd = pf[o, s, 9]
+                if hd == 0.0:  # slot not in contact (its other entries are stale)
+                    continue
+                c = ri - hd
+                fx -= pf[o, s, 0]
+                fy -= pf[o, s, 1]
+                fz -= pf[o, s, 2]
+                tx += c * pf[o, s, 3] - pf[o, s, 6]
+                ty += c * pf[o, s, 4] - pf[o, s, 7]
+                tz += c * pf[o, s, 5] - pf[o, s, 8]
+            for k in range(nown[i]):
+                hd = pf[i, k, 9]
+                if hd == 0.0:
+                    continue
+                c = ri - hd
+                fx += pf[i, k, 0]
+                fy += pf[i, k, 1]
+                fz += pf[i, k, 2]
+                tx += c * pf[i, k, 3] + pf[i, k, 6]
+                ty += c * pf[i, k, 4] + pf[i, k, 7]
+                tz += c * pf[i, k, 5] + pf[i, k, 8]
         x, y, z = P[i, 0], P[i, 1], P[i, 2]
         vx, vy, vz = P[i, 3], P[i, 4], P[i, 5]
         wx, wy, wz = P[i, 6], P[i, 7], P[i, 8]
@@ -1051,16 +1138,17 @@ def _max_tri_disp2(tri_x, tri_xb):
 @njit(cache=True)
 def advance(
     nsteps, step0, dt, n, P, F, IA, XB, rm, disp2, whist,
-    nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, cur,
+    nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, cur,
     tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x0, tri_x, tri_xb, tri_mesh, mesh_par, any_moving,
-    planes, cyls, sinks, pt, dom, per, grav, skin, rmax, removed, counters,
+    planes, cyls, sinks, pt, dom, per, grav, skin, rmax, removed, counters, serial,
 ):  # fmt: skip
     """Advance up to ``nsteps`` velocity-Verlet steps.
 
     Each step: (1) predict the drift; rebuild the lists first if any particle would move more than
     skin/2 since the last build (or a mesh plus a particle more than skin), leave the domain or
     enter a sink, or a rebuild is pending (``counters[0]``); (2) half kick + drift; (3) move meshes;
-    (4) pass 1 and pass 2 forces + half kick. Returns (status, steps_done, n); status != 0 means a
+    (4) pass 1 and pass 2 forces + half kick (``serial``, for one thread: :func:`pair_scatter`
+    instead of pass 1, bit-identical). Returns (status, steps_done, n); status != 0 means a
     list must be enlarged (``counters[2]`` holds the needed size) before calling again.
     """
     half_skin2 = (0.5 * skin) ** 2
@@ -1099,9 +1187,12 @@ def advance(
                 update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
         kick_drift(n, P, F, dom, per, dt)
         c = cur[0]
-        pair_pass(n, P, F, IA, nb_b[c], nown_b[c], hist_b[c], pf, pt, dom, per, dt)
+        if serial:
+            pair_scatter(n, P, IA, nb_b[c], nown_b[c], hist_b[c], acc, pt, dom, per, dt)
+        else:
+            pair_pass(n, P, F, IA, nb_b[c], nown_b[c], hist_b[c], pf, pt, dom, per, dt)
         gather_pass(
-            n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k,
+            n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc,
             planes, cyls, whist,
             ntri_b[c], tri_nb_b[c], thist_b[c], tri_tmp, tri_x, tri_mesh, mesh_par,
             pt, dom, per, grav, dt, t_new, True, XB, rm, sinks, disp2,
@@ -1111,9 +1202,9 @@ def advance(
 
 @njit(cache=True)
 def compute_forces(
-    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, cur,
+    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, cur,
     tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
-    planes, cyls, pt, dom, per, grav, dt, t,
+    planes, cyls, pt, dom, per, grav, dt, t, serial,
 ):  # fmt: skip
     """Forces at the current state without moving (used once before the first step).
 
@@ -1124,9 +1215,12 @@ def compute_forces(
     th = thist_b[c].copy()
     wh = whist.copy()
     v = P[:n, 3:9].copy()
-    pair_pass(n, P, F, IA, nb_b[c], nown_b[c], hist_b[c], pf, pt, dom, per, dt)
+    if serial:
+        pair_scatter(n, P, IA, nb_b[c], nown_b[c], hist_b[c], acc, pt, dom, per, dt)
+    else:
+        pair_pass(n, P, F, IA, nb_b[c], nown_b[c], hist_b[c], pf, pt, dom, per, dt)
     gather_pass(
-        n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k,
+        n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc,
         planes, cyls, whist,
         ntri_b[c], tri_nb_b[c], thist_b[c], tri_tmp, tri_x, tri_mesh, mesh_par,
         pt, dom, per, grav, dt, t, False, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 6)),

@@ -13,6 +13,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from . import kernels as K
@@ -52,6 +53,12 @@ class Simulation:
         Verlet skin (m). Default: 0.5 times the largest radius at the first build.
     seed : int
         Default seed of :meth:`insert_particles`.
+    pair_scheme : {"auto", "scatter", "two_pass"}
+        Pair-force scheme (attribute, may be changed between runs): ``"scatter"`` evaluates each
+        pair once and adds it to both particles in one serial loop (fastest on one thread);
+        ``"two_pass"`` writes pair forces to a buffer and gathers them per particle (parallel);
+        ``"auto"`` (default) uses the scatter when numba runs one thread. The schemes give
+        bit-identical results.
 
     Attributes ``t, ids, type_id, material_id, radius, mass, pos, vel, omega, force, torque,
     n_particles`` expose the state. Rows are re-sorted by neighbour cell at every neighbour-list
@@ -69,6 +76,7 @@ class Simulation:
         dt_fraction: float = 0.2,
         skin: float | None = None,
         seed: int = 0,
+        pair_scheme: str = "auto",
     ) -> None:
         lo = _vec3(domain_lo, "domain_lo")
         hi = _vec3(domain_hi, "domain_hi")
@@ -97,6 +105,8 @@ class Simulation:
         self._dt_frozen = False
         self.skin: float | None = float(skin) if skin is not None else None
         self.seed = int(seed)
+        self.pair_scheme = pair_scheme
+        self._serial()
         self._step = 0
         self._next_id = 0
         self._rmax = 0.0
@@ -134,6 +144,7 @@ class Simulation:
         self._hist = np.zeros((2, cap, kown, 3))
         self._nown = np.zeros((2, cap), np.int64)
         self._pf = np.zeros((cap, kown, 10))
+        self._acc = np.zeros((cap, 6))
         self._rev_o = np.zeros((cap, krev), np.int64)
         self._rev_k = np.zeros((cap, krev), np.int64)
         self._nrev = np.zeros(cap, np.int64)
@@ -711,13 +722,23 @@ class Simulation:
         if np.any(self._rm[: self._n] != 0):
             self._rebuild()
 
+    def _serial(self) -> bool:
+        """Whether the serial pair scatter is used (``pair_scheme``, numba thread count)."""
+        if self.pair_scheme == "auto":
+            return numba.get_num_threads() == 1
+        if self.pair_scheme not in ("scatter", "two_pass"):
+            raise ValueError(
+                f"pair_scheme must be 'auto', 'scatter' or 'two_pass', got {self.pair_scheme!r}"
+            )
+        return self.pair_scheme == "scatter"
+
     def _compute_forces(self) -> None:
         K.compute_forces(
             self._n, self._P, self._F, self._IA, self._whist, self._nb, self._hist, self._nown,
-            self._rev_o, self._rev_k, self._nrev, self._pf, self._cur,
+            self._rev_o, self._rev_k, self._nrev, self._pf, self._acc, self._cur,
             self._tri_nb, self._thist, self._ntri, self._tri_tmp, self._tri_x, self._tri_mesh,
             self._mesh_par, self._planes, self._cyls, self._pt, self._dom, self._per,
-            self._grav, self.dt, self.t,
+            self._grav, self.dt, self.t, self._serial(),
         )  # fmt: skip
         self._forces_stale = False
 
@@ -781,12 +802,13 @@ class Simulation:
                     chunk, self._step, dt, self._n, self._P, self._F, self._IA, self._XB,
                     self._rm, self._disp2, self._whist,
                     self._nb, self._hist, self._nown, self._rev_o, self._rev_k, self._nrev,
-                    self._pf, self._cur, self._tri_nb, self._thist, self._ntri, self._tri_tmp,
-                    self._tri_x0, self._tri_x, self._tri_xb, self._tri_mesh, self._mesh_par,
+                    self._pf, self._acc, self._cur, self._tri_nb, self._thist, self._ntri,
+                    self._tri_tmp, self._tri_x0, self._tri_x, self._tri_xb, self._tri_mesh,
+                    self._mesh_par,
                     bool(np.any(self._mesh_par[:, 0] != 0)) if len(self._mesh_par) else False,
                     self._planes, self._cyls, self._sinks, self._pt, self._dom, self._per,
                     self._grav, self._skin(), max(self._rmax, 1e-12), self._removed,
-                    self._counters,
+                    self._counters, self._serial(),
                 )  # fmt: skip
                 el = time.perf_counter() - t0
                 self.wall_time_s += el
