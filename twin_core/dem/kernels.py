@@ -386,7 +386,7 @@ def pair_pass(n, P, F, IA, nb, nown, hist, pf, pt, dom, per, dt):
             pf[i, k, 9] = hd
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def pair_scatter(n, P, IA, nb, nown, hist, acc, pt, dom, per, dt):
     """Serial scheme (one thread): evaluate each owned pair once and add its force and torques
     straight to both particles' sums ``acc[i]`` and ``acc[j]`` (Newton's third law), without the
@@ -396,51 +396,57 @@ def pair_scatter(n, P, IA, nb, nown, hist, acc, pt, dom, per, dt):
     contributions of its owners (ascending) before its own slots (ascending): the order in which
     :func:`gather_pass` sums the reverse then the owned slots. The sums are therefore bit-identical
     to the parallel scheme.
+
+    The serial loop is wrapped in a one-iteration ``prange``: it runs on one thread whatever the
+    thread count (no race), and numba compiles a parallel region with its array arguments marked
+    as not aliasing each other, so the compiler can keep loads of ``P`` and ``hist`` across the
+    stores to ``acc`` (about 15 % faster than the same loop in a plain ``njit`` function).
     """
-    l0, l1, l2 = dom[6], dom[7], dom[8]
-    p0, p1, p2 = per[0] != 0, per[1] != 0, per[2] != 0
-    for i in range(n):
-        for a in range(6):
-            acc[i, a] = 0.0
-    for i in range(n):
-        xi, yi, zi = P[i, 0], P[i, 1], P[i, 2]
-        ri = P[i, 9]
-        fx, fy, fz = acc[i, 0], acc[i, 1], acc[i, 2]
-        tx, ty, tz = acc[i, 3], acc[i, 4], acc[i, 5]
-        for k in range(nown[i]):
-            j = nb[i, k]
-            dx = _min_image(P[j, 0] - xi, l0, p0)
-            dy = _min_image(P[j, 1] - yi, l1, p1)
-            dz = _min_image(P[j, 2] - zi, l2, p2)
-            rj = P[j, 9]
-            rs = ri + rj
-            d2 = dx * dx + dy * dy + dz * dz
-            if d2 >= rs * rs:
-                _clear3(hist, i, k)
-                continue
-            f0, f1, f2, t0, t1, t2, r0, r1, r2, hd = _pair_contact(
-                P, IA, hist, pt, i, k, j, dx, dy, dz, d2, rs, dt
-            )
-            c = ri - hd
-            fx += f0
-            fy += f1
-            fz += f2
-            tx += c * t0 + r0
-            ty += c * t1 + r1
-            tz += c * t2 + r2
-            c = rj - hd
-            acc[j, 0] -= f0
-            acc[j, 1] -= f1
-            acc[j, 2] -= f2
-            acc[j, 3] += c * t0 - r0
-            acc[j, 4] += c * t1 - r1
-            acc[j, 5] += c * t2 - r2
-        acc[i, 0] = fx
-        acc[i, 1] = fy
-        acc[i, 2] = fz
-        acc[i, 3] = tx
-        acc[i, 4] = ty
-        acc[i, 5] = tz
+    for _ in prange(1):
+        l0, l1, l2 = dom[6], dom[7], dom[8]
+        p0, p1, p2 = per[0] != 0, per[1] != 0, per[2] != 0
+        for i in range(n):
+            for a in range(6):
+                acc[i, a] = 0.0
+        for i in range(n):
+            xi, yi, zi = P[i, 0], P[i, 1], P[i, 2]
+            ri = P[i, 9]
+            fx, fy, fz = acc[i, 0], acc[i, 1], acc[i, 2]
+            tx, ty, tz = acc[i, 3], acc[i, 4], acc[i, 5]
+            for k in range(nown[i]):
+                j = nb[i, k]
+                dx = _min_image(P[j, 0] - xi, l0, p0)
+                dy = _min_image(P[j, 1] - yi, l1, p1)
+                dz = _min_image(P[j, 2] - zi, l2, p2)
+                rj = P[j, 9]
+                rs = ri + rj
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 >= rs * rs:
+                    _clear3(hist, i, k)
+                    continue
+                f0, f1, f2, t0, t1, t2, r0, r1, r2, hd = _pair_contact(
+                    P, IA, hist, pt, i, k, j, dx, dy, dz, d2, rs, dt
+                )
+                c = ri - hd
+                fx += f0
+                fy += f1
+                fz += f2
+                tx += c * t0 + r0
+                ty += c * t1 + r1
+                tz += c * t2 + r2
+                c = rj - hd
+                acc[j, 0] -= f0
+                acc[j, 1] -= f1
+                acc[j, 2] -= f2
+                acc[j, 3] += c * t0 - r0
+                acc[j, 4] += c * t1 - r1
+                acc[j, 5] += c * t2 - r2
+            acc[i, 0] = fx
+            acc[i, 1] = fy
+            acc[i, 2] = fz
+            acc[i, 3] = tx
+            acc[i, 4] = ty
+            acc[i, 5] = tz
 
 
 @njit(cache=True)
