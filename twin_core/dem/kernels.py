@@ -133,6 +133,79 @@ def _tri_periodic_point(px, py, pz, tri, dom, per):
 
 
 # --------------------------------------------------------------------------------------------
+# the contact law (shared by particle-particle and particle-wall contacts)
+# --------------------------------------------------------------------------------------------
+@njit(cache=True, inline="always")
+def _hertz_mindlin(
+    e_star, g_star, mu, dmp, r_eff, m_eff, delta, nx, ny, nz, vtx, vty, vtz,
+    pvn, ptx, pty, ptz, hx, hy, hz, dt,
+):  # fmt: skip
+    """Normal and tangential contact force (module docstring; Hertz-Mindlin no-slip, Tsuji
+    damping, Coulomb-truncated tangential spring as LAMMPS ``gran/hertz/history``).
+
+    ``F_n = (2/3) S_n delta + d sqrt(S_n m*) v_n``, ``S_n = 2 E* sqrt(R* delta)``, clamped >= 0;
+    the spring (hx, hy, hz) is rotated into the tangent plane (magnitude kept), advanced by
+    ``v_t dt``, ``F_t = -S_t xi - d sqrt(S_t m*) v_t``, ``S_t = 8 G* sqrt(R* delta)``, and if
+    ``|F_t| > mu F_n`` scaled to the limit with ``xi = -(F_t + d sqrt(S_t m*) v_t) / S_t``.
+    Returns (F_n, F_t x, y, z, new spring x, y, z).
+    """
+    sq = math.sqrt(r_eff * delta)
+    sn = 2.0 * e_star * sq
+    st = 8.0 * g_star * sq
+    fn = _TWO_THIRDS * sn * delta + dmp * math.sqrt(sn * m_eff) * pvn
+    if fn < 0.0:
+        fn = 0.0
+    h2 = hx * hx + hy * hy + hz * hz
+    if h2 > 0.0:
+        hn = hx * nx + hy * ny + hz * nz
+        hx -= hn * nx
+        hy -= hn * ny
+        hz -= hn * nz
+        h2n = hx * hx + hy * hy + hz * hz
+        if h2n > 0.0:
+            s = math.sqrt(h2 / h2n)
+            hx *= s
+            hy *= s
+            hz *= s
+    hx += vtx * dt
+    hy += vty * dt
+    hz += vtz * dt
+    ct = dmp * math.sqrt(st * m_eff)
+    ftx = -st * hx - ct * ptx
+    fty = -st * hy - ct * pty
+    ftz = -st * hz - ct * ptz
+    ft2 = ftx * ftx + fty * fty + ftz * ftz
+    fmax = mu * fn
+    if ft2 > fmax * fmax:
+        if ft2 > 0.0:
+            s = fmax / math.sqrt(ft2)
+            ftx *= s
+            fty *= s
+            ftz *= s
+            hx = -(ftx + ct * ptx) / st
+            hy = -(fty + ct * pty) / st
+            hz = -(ftz + ct * ptz) / st
+    return fn, ftx, fty, ftz, hx, hy, hz
+
+
+@njit(cache=True, inline="always")
+def _rolling_torque(mur, fn, r_eff, rwx, rwy, rwz, dt_inv_i):
+    """Constant directional rolling torque ``-mu_r F_n R* w_rel/|w_rel|`` (LIGGGHTS ``cdt``;
+    Ai et al. 2011 model A), capped at ``|w_rel| / (dt (1/I_1 + 1/I_2))`` so that it cannot
+    reverse the relative rotation within a step (``dt_inv_i`` = dt times that inverse-inertia
+    sum). Returns the torque on the first body."""
+    if mur > 0.0:
+        wm = math.sqrt(rwx * rwx + rwy * rwy + rwz * rwz)
+        if wm > 0.0:
+            tr = mur * fn * r_eff
+            tcap = wm / dt_inv_i
+            if tr > tcap:
+                tr = tcap
+            return -tr * rwx / wm, -tr * rwy / wm, -tr * rwz / wm
+    return 0.0, 0.0, 0.0
+
+
+# --------------------------------------------------------------------------------------------
 # wall contact (particle against an infinitely massive body)
 # --------------------------------------------------------------------------------------------
 @njit(cache=True)
@@ -164,44 +237,10 @@ def wall_contact(
     ptx = pvx - pvn * nx
     pty = pvy - pvn * ny
     ptz = pvz - pvn * nz
-    sq = math.sqrt(r * delta)
-    sn = 2.0 * e_star * sq
-    st = 8.0 * g_star * sq
-    fn = _TWO_THIRDS * sn * delta + dmp * math.sqrt(sn * m) * pvn
-    if fn < 0.0:
-        fn = 0.0
-    # tangential spring: rotate into the tangent plane, keep magnitude
-    hx, hy, hz = hist[0], hist[1], hist[2]
-    h2 = hx * hx + hy * hy + hz * hz
-    if h2 > 0.0:
-        hn = hx * nx + hy * ny + hz * nz
-        hx -= hn * nx
-        hy -= hn * ny
-        hz -= hn * nz
-        h2n = hx * hx + hy * hy + hz * hz
-        if h2n > 0.0:
-            s = math.sqrt(h2 / h2n)
-            hx *= s
-            hy *= s
-            hz *= s
-    hx += vtx * dt
-    hy += vty * dt
-    hz += vtz * dt
-    ct = dmp * math.sqrt(st * m)
-    ftx = -st * hx - ct * ptx
-    fty = -st * hy - ct * pty
-    ftz = -st * hz - ct * ptz
-    ft2 = ftx * ftx + fty * fty + ftz * ftz
-    fmax = mu * fn
-    if ft2 > fmax * fmax:
-        if ft2 > 0.0:
-            s = fmax / math.sqrt(ft2)
-            ftx *= s
-            fty *= s
-            ftz *= s
-            hx = -(ftx + ct * ptx) / st
-            hy = -(fty + ct * pty) / st
-            hz = -(ftz + ct * ptz) / st
+    fn, ftx, fty, ftz, hx, hy, hz = _hertz_mindlin(
+        e_star, g_star, mu, dmp, r, m, delta, nx, ny, nz, vtx, vty, vtz,
+        pvn, ptx, pty, ptz, hist[0], hist[1], hist[2], dt,
+    )  # fmt: skip
     hist[0] = hx
     hist[1] = hy
     hist[2] = hz
@@ -213,18 +252,8 @@ def wall_contact(
     ty = c * (nz * ftx - nx * ftz)
     tz = c * (nx * fty - ny * ftx)
     # rolling friction (constant directional torque)
-    if mur > 0.0:
-        rwx, rwy, rwz = wx - wwx, wy - wwy, wz - wwz
-        wm = math.sqrt(rwx * rwx + rwy * rwy + rwz * rwz)
-        if wm > 0.0:
-            tr = mur * fn * r
-            tcap = wm / (dt * inv_i)
-            if tr > tcap:
-                tr = tcap
-            tx -= tr * rwx / wm
-            ty -= tr * rwy / wm
-            tz -= tr * rwz / wm
-    return fx, fy, fz, tx, ty, tz
+    trx, try_, trz = _rolling_torque(mur, fn, r, wx - wwx, wy - wwy, wz - wwz, dt * inv_i)
+    return fx, fy, fz, tx + trx, ty + try_, tz + trz
 
 
 # --------------------------------------------------------------------------------------------
@@ -273,62 +302,16 @@ def _pair_contact(P, IA, hist, pt, i, k, j, dx, dy, dz, d2, rs, dt):
     ptx = pvx - pvn * nx
     pty = pvy - pvn * ny
     ptz = pvz - pvn * nz
-    sq = math.sqrt(r_star * delta)
-    sn = 2.0 * e_star * sq
-    st = 8.0 * g_star * sq
-    fn = _TWO_THIRDS * sn * delta + dmp * math.sqrt(sn * m_star) * pvn
-    if fn < 0.0:
-        fn = 0.0
-    hx, hy, hz = hist[i, k, 0], hist[i, k, 1], hist[i, k, 2]
-    h2 = hx * hx + hy * hy + hz * hz
-    if h2 > 0.0:
-        hn = hx * nx + hy * ny + hz * nz
-        hx -= hn * nx
-        hy -= hn * ny
-        hz -= hn * nz
-        h2n = hx * hx + hy * hy + hz * hz
-        if h2n > 0.0:
-            s = math.sqrt(h2 / h2n)
-            hx *= s
-            hy *= s
-            hz *= s
-    hx += vtx * dt
-    hy += vty * dt
-    hz += vtz * dt
-    ct = dmp * math.sqrt(st * m_star)
-    ftx = -st * hx - ct * ptx
-    fty = -st * hy - ct * pty
-    ftz = -st * hz - ct * ptz
-    ft2 = ftx * ftx + fty * fty + ftz * ftz
-    fmax = mu * fn
-    if ft2 > fmax * fmax:
-        if ft2 > 0.0:
-            s = fmax / math.sqrt(ft2)
-            ftx *= s
-            fty *= s
-            ftz *= s
-            hx = -(ftx + ct * ptx) / st
-            hy = -(fty + ct * pty) / st
-            hz = -(ftz + ct * ptz) / st
+    fn, ftx, fty, ftz, hx, hy, hz = _hertz_mindlin(
+        e_star, g_star, mu, dmp, r_star, m_star, delta, nx, ny, nz, vtx, vty, vtz,
+        pvn, ptx, pty, ptz, hist[i, k, 0], hist[i, k, 1], hist[i, k, 2], dt,
+    )  # fmt: skip
     hist[i, k, 0] = hx
     hist[i, k, 1] = hy
     hist[i, k, 2] = hz
-    trx = 0.0
-    try_ = 0.0
-    trz = 0.0
-    if mur > 0.0:
-        rwx = wxi - wxj
-        rwy = wyi - wyj
-        rwz = wzi - wzj
-        wm = math.sqrt(rwx * rwx + rwy * rwy + rwz * rwz)
-        if wm > 0.0:
-            tr = mur * fn * r_star
-            tcap = wm / (dt * (P[i, 12] + P[j, 12]))
-            if tr > tcap:
-                tr = tcap
-            trx = -tr * rwx / wm
-            try_ = -tr * rwy / wm
-            trz = -tr * rwz / wm
+    trx, try_, trz = _rolling_torque(
+        mur, fn, r_star, wxi - wxj, wyi - wyj, wzi - wzj, dt * (P[i, 12] + P[j, 12])
+    )
     return (
         -fn * nx + ftx,
         -fn * ny + fty,
