@@ -137,8 +137,7 @@ def _tri_periodic_point(px, py, pz, tri, dom, per):
 # --------------------------------------------------------------------------------------------
 @njit(cache=True, inline="always")
 def _hertz_mindlin(
-    e_star, g_star, mu, dmp, r_eff, m_eff, delta, nx, ny, nz, vtx, vty, vtz,
-    pvn, ptx, pty, ptz, hx, hy, hz, dt,
+    e_star, g_star, mu, dmp, r_eff, m_eff, delta, nx, ny, nz, rvx, rvy, rvz, hx, hy, hz, dt,
 ):  # fmt: skip
     """Normal and tangential contact force (module docstring; Hertz-Mindlin no-slip, Tsuji
     damping, Coulomb-truncated tangential spring as LAMMPS ``gran/hertz/history``).
@@ -147,12 +146,19 @@ def _hertz_mindlin(
     the spring (hx, hy, hz) is rotated into the tangent plane (magnitude kept), advanced by
     ``v_t dt``, ``F_t = -S_t xi - d sqrt(S_t m*) v_t``, ``S_t = 8 G* sqrt(R* delta)``, and if
     ``|F_t| > mu F_n`` scaled to the limit with ``xi = -(F_t + d sqrt(S_t m*) v_t) / S_t``.
-    Returns (F_n, F_t x, y, z, new spring x, y, z).
+    ``rv``: relative velocity at the contact point (first body minus second), split into
+    ``v_n = rv . n`` and ``v_t = rv - v_n n``; the dashpots use the same (half-step) velocities
+    as the springs (a velocity predicted from the previous force, v + F/m dt/2, is unstable for
+    strongly damped, many-contact beds). Returns (F_n, F_t x, y, z, new spring x, y, z).
     """
+    vn = rvx * nx + rvy * ny + rvz * nz
+    vtx = rvx - vn * nx
+    vty = rvy - vn * ny
+    vtz = rvz - vn * nz
     sq = math.sqrt(r_eff * delta)
     sn = 2.0 * e_star * sq
     st = 8.0 * g_star * sq
-    fn = _TWO_THIRDS * sn * delta + dmp * math.sqrt(sn * m_eff) * pvn
+    fn = _TWO_THIRDS * sn * delta + dmp * math.sqrt(sn * m_eff) * vn
     if fn < 0.0:
         fn = 0.0
     h2 = hx * hx + hy * hy + hz * hz
@@ -171,9 +177,9 @@ def _hertz_mindlin(
     hy += vty * dt
     hz += vtz * dt
     ct = dmp * math.sqrt(st * m_eff)
-    ftx = -st * hx - ct * ptx
-    fty = -st * hy - ct * pty
-    ftz = -st * hz - ct * ptz
+    ftx = -st * hx - ct * vtx
+    fty = -st * hy - ct * vty
+    ftz = -st * hz - ct * vtz
     ft2 = ftx * ftx + fty * fty + ftz * ftz
     fmax = mu * fn
     if ft2 > fmax * fmax:
@@ -182,9 +188,9 @@ def _hertz_mindlin(
             ftx *= s
             fty *= s
             ftz *= s
-            hx = -(ftx + ct * ptx) / st
-            hy = -(fty + ct * pty) / st
-            hz = -(ftz + ct * ptz) / st
+            hx = -(ftx + ct * vtx) / st
+            hy = -(fty + ct * vty) / st
+            hz = -(ftz + ct * vtz) / st
     return fn, ftx, fty, ftz, hx, hy, hz
 
 
@@ -228,18 +234,9 @@ def wall_contact(
     rvx = vx + c * (wy * nz - wz * ny) - vwx
     rvy = vy + c * (wz * nx - wx * nz) - vwy
     rvz = vz + c * (wx * ny - wy * nx) - vwz
-    vn = rvx * nx + rvy * ny + rvz * nz
-    vtx = rvx - vn * nx
-    vty = rvy - vn * ny
-    vtz = rvz - vn * nz
-    pvx, pvy, pvz = rvx, rvy, rvz
-    pvn = pvx * nx + pvy * ny + pvz * nz
-    ptx = pvx - pvn * nx
-    pty = pvy - pvn * ny
-    ptz = pvz - pvn * nz
     fn, ftx, fty, ftz, hx, hy, hz = _hertz_mindlin(
-        e_star, g_star, mu, dmp, r, m, delta, nx, ny, nz, vtx, vty, vtz,
-        pvn, ptx, pty, ptz, hist[0], hist[1], hist[2], dt,
+        e_star, g_star, mu, dmp, r, m, delta, nx, ny, nz, rvx, rvy, rvz,
+        hist[0], hist[1], hist[2], dt,
     )  # fmt: skip
     hist[0] = hx
     hist[1] = hy
@@ -291,20 +288,9 @@ def _pair_contact(P, IA, hist, pt, i, k, j, dx, dy, dz, d2, rs, dt):
     rvx = P[i, 3] - P[j, 3] + (ay * nz - az * ny)
     rvy = P[i, 4] - P[j, 4] + (az * nx - ax * nz)
     rvz = P[i, 5] - P[j, 5] + (ax * ny - ay * nx)
-    vn = rvx * nx + rvy * ny + rvz * nz
-    vtx = rvx - vn * nx
-    vty = rvy - vn * ny
-    vtz = rvz - vn * nz
-    # dashpots use the same half-step velocities (a velocity predicted from the previous
-    # force, v + F/m dt/2, is unstable for strongly damped, many-contact beds)
-    pvx, pvy, pvz = rvx, rvy, rvz
-    pvn = pvx * nx + pvy * ny + pvz * nz
-    ptx = pvx - pvn * nx
-    pty = pvy - pvn * ny
-    ptz = pvz - pvn * nz
     fn, ftx, fty, ftz, hx, hy, hz = _hertz_mindlin(
-        e_star, g_star, mu, dmp, r_star, m_star, delta, nx, ny, nz, vtx, vty, vtz,
-        pvn, ptx, pty, ptz, hist[i, k, 0], hist[i, k, 1], hist[i, k, 2], dt,
+        e_star, g_star, mu, dmp, r_star, m_star, delta, nx, ny, nz, rvx, rvy, rvz,
+        hist[i, k, 0], hist[i, k, 1], hist[i, k, 2], dt,
     )  # fmt: skip
     hist[i, k, 0] = hx
     hist[i, k, 1] = hy
