@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 import pytest
 
@@ -25,13 +24,7 @@ G_MOD = 2e6
 NU = 0.25
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small systems: one numba thread (results do not depend on it; see the determinism test)."""
-    old = numba.get_num_threads()
-    numba.set_num_threads(1)
-    yield
-    numba.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_numba_thread")
 
 
 def _mat(e: float = 0.5, mu: float = 0.5, mur: float = 0.0) -> Material:

@@ -21,13 +21,7 @@ R = 1e-3
 G = 9.81
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small systems: one numba thread (results do not depend on it; see the determinism test)."""
-    old = numba.get_num_threads()
-    numba.set_num_threads(1)
-    yield
-    numba.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_numba_thread")
 
 
 def _mat(e=0.5, mu=0.5, mur=0.0) -> Material:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numba
 import numpy as np
 import pytest
 import yaml
@@ -19,17 +18,7 @@ from schemas.dem_scene import load_scene
 
 CONFIGS = Path(__file__).resolve().parents[1] / "twin_core" / "scenes" / "configs"
 
-pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """The engine's parallel loops are slow on a shared, oversubscribed 2-core machine: run
-    these small scenes on one thread (restored afterwards)."""
-    n = numba.get_num_threads()
-    numba.set_num_threads(1)
-    yield
-    numba.set_num_threads(n)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_numba_thread")]
 
 
 def _cfg(name: str, **material):
