@@ -15,27 +15,16 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
-import platform
 import sys
 import threading
 import time
 
 import numpy as np
+from machine import describe
 
 from services.bus import free_port
 
 WARMUP = 200
-
-
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def typed_event(seq: int):
@@ -112,10 +101,7 @@ def measure(mode: str, n: int) -> np.ndarray:
 
 def main() -> None:
     n = int(sys.argv[1]) if len(sys.argv) > 1 else 3000
-    print(
-        f"machine: {cpu_model()}, {os.cpu_count()} CPUs, "
-        f"Python {platform.python_version()}; {n} round trips after {WARMUP} warm-up"
-    )
+    print(f"{describe()}; {n} round trips after {WARMUP} warm-up")
     assert len(typed_event(WARMUP + n).to_json_bytes()) == 200
     res = {}
     for mode in ("raw", "typed"):

@@ -17,13 +17,13 @@ Run: ``python benchmarks/bus_throughput.py [N]``.
 from __future__ import annotations
 
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from machine import describe
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
@@ -34,17 +34,6 @@ from services.recording import McapRecorder, read_recording, replay, replay_to_b
 
 FLOW = "twin/bench/feeder/api/flow"
 CONC = "twin/bench/pat/nir1/concentration"
-
-
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def payloads(n: int) -> list[tuple[str, bytes, float]]:
@@ -156,10 +145,7 @@ def bench_end_to_end(path: Path, n: int, d: Path) -> dict[str, float]:
 
 def main() -> None:
     n = int(sys.argv[1]) if len(sys.argv) > 1 else 20_000
-    print(
-        f"machine: {cpu_model()}, {os.cpu_count()} CPUs, Python "
-        f"{platform.python_version()}; {n} messages (~130-190 B JSON each)"
-    )
+    print(f"{describe()}; {n} messages (~130-190 B JSON each)")
     data = payloads(n)
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
