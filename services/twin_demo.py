@@ -123,15 +123,21 @@ class _Tap:
         line = spec.name
 
         def cb(model, sink):
-            def on(sample: zenoh.Sample) -> None:
-                on_payload(str(sample.key_expr), sample.payload.to_bytes())
+            """(key, payload) -> validated message to ``sink`` under the lock (HistoryFeed)."""
 
             def on_payload(key: str, payload: bytes) -> None:
                 msg = model.model_validate_json(payload)
                 with self.lock:
                     sink(msg)
 
-            return on_payload, zenoh.handlers.Callback(on, lambda: None)
+            return on_payload
+
+        def live(on_payload):
+            """The same for a plain (no-history) zenoh subscriber."""
+            return zenoh.handlers.Callback(
+                lambda sample: on_payload(str(sample.key_expr), sample.payload.to_bytes()),
+                lambda: None,
+            )
 
         def on_alert(a: OosAlert) -> None:
             if a.alert_id in self.alerts:
@@ -156,26 +162,26 @@ class _Tap:
             self.meas[m.t] = m.concentration_pct_w_w
 
         self.subs = [
-            HistoryFeed(self.session, keys.oos_alert(line), cb(OosAlert, on_alert)[0]),
-            HistoryFeed(self.session, keys.divert_command(line), cb(DivertCommand, on_divert)[0]),
-            HistoryFeed(self.session, keys.rtd_estimate(line), cb(RtdEstimate, self.rtd.append)[0]),
+            HistoryFeed(self.session, keys.oos_alert(line), cb(OosAlert, on_alert)),
+            HistoryFeed(self.session, keys.divert_command(line), cb(DivertCommand, on_divert)),
+            HistoryFeed(self.session, keys.rtd_estimate(line), cb(RtdEstimate, self.rtd.append)),
             HistoryFeed(
                 self.session,
                 keys.model_finding(line),
-                cb(ModelFinding, lambda f: self.findings.__setitem__(f.finding_id, f))[0],
+                cb(ModelFinding, lambda f: self.findings.__setitem__(f.finding_id, f)),
             ),
             HistoryFeed(
                 self.session,
                 keys.predicted_concentration(line, "outlet"),
-                cb(PredictedConcentration, on_pred)[0],
+                cb(PredictedConcentration, on_pred),
             ),
             self.session.declare_subscriber(
                 keys.measured_concentration(line, spec.sensor.id),
-                cb(MeasuredConcentration, on_meas)[1],
+                live(cb(MeasuredConcentration, on_meas)),
             ),
             self.session.declare_subscriber(
                 f"twin/{line}/service/*/health",
-                cb(ServiceHealth, lambda h: self.health.__setitem__(h.service, h))[1],
+                live(cb(ServiceHealth, lambda h: self.health.__setitem__(h.service, h))),
             ),
         ]
 
