@@ -26,7 +26,6 @@ published tick is kept in the run's state directory.
 from __future__ import annotations
 
 import logging
-from collections import deque
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -73,6 +72,31 @@ def blender_kernel(spec: LineSpec) -> np.ndarray:
     return np.asarray(model.impulse_response(t), dtype=float)
 
 
+class _FlowMemory:
+    """The last ``size`` (t, flow, refilling) samples of one feeder as contiguous arrays, oldest
+    first (a doubled buffer: O(1) append amortised, no copy to read)."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.t = np.empty(2 * size)
+        self.q = np.empty(2 * size)
+        self.r = np.zeros(2 * size, dtype=bool)
+        self.end = 0
+
+    def append(self, t: float, q: float, refilling: bool) -> None:
+        if self.end == 2 * self.size:  # keep the newest size - 1, then append
+            keep = self.size - 1
+            for a in (self.t, self.q, self.r):
+                a[:keep] = a[self.end - keep : self.end]
+            self.end = keep
+        self.t[self.end], self.q[self.end], self.r[self.end] = t, q, refilling
+        self.end += 1
+
+    def window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a = max(0, self.end - self.size)
+        return self.t[a : self.end], self.q[a : self.end], self.r[a : self.end]
+
+
 class BlenderPredictor:
     """The prediction core (no bus): feed ticks of feeder flows, get outlet concentrations."""
 
@@ -94,7 +118,7 @@ class BlenderPredictor:
         #: adopted effects (rtd and feeder stage)
         self.effects: list[Effect] = []
         self._refill: dict[str, dict[int, bool]] = {f: {} for f in self.components}
-        self._hist: dict[str, deque[tuple[float, float, bool]]] = {}
+        self._hist: dict[str, _FlowMemory] = {}
 
     def set_kernel(self, e: np.ndarray) -> None:
         """Replace E(t) (an adopted RTD estimate), keeping the flow history."""
@@ -150,12 +174,14 @@ class BlenderPredictor:
         """The delivered flow under the adopted feeder-stage effects (causal: the effect's
         ``apply_flow`` on the feeder's recent reported flows, last value)."""
         effs = [e for e in self.effects if e.stage == "feeder" and e.target in (None, feeder)]
-        h = self._hist.setdefault(feeder, deque(maxlen=self.FLOW_MEMORY))
-        h.append((t, q, refilling))
+        h = self._hist.get(feeder)
+        if h is None:
+            h = self._hist[feeder] = _FlowMemory(self.FLOW_MEMORY)
+        h.append(t, q, refilling)
         if not effs:
             return q
-        arr = np.array(h, dtype=float)
-        tt, qq, rr = arr[:, 0], arr[:, 1], arr[:, 2].astype(bool)
+        tt, qq, rr = h.window()
+        qq = qq.copy()  # an effect may work in place: the memory keeps the reported flows
         for e in sorted(effs, key=lambda e: e.order):
             qq = e.apply_flow(tt, qq, rr)
         return float(qq[-1])

@@ -128,3 +128,19 @@ def test_blender_refuses_drifts_and_sensor_effects():
     )
     assert sorted(e.name for e in left) == ["feed_factor_drift", "sensor_offset"]
     assert [e.name for e in bp.effects] == ["bypass"]
+
+
+def test_blender_flow_memory_keeps_the_last_samples_in_order_across_wraps():
+    """The feeder-effect memory (doubled buffer) against a plain list of the same samples."""
+    from services.blender import _FlowMemory
+
+    mem = _FlowMemory(7)
+    ref = []
+    for i in range(40):
+        mem.append(float(i), 10.0 + i, i % 5 == 0)
+        ref.append((float(i), 10.0 + i, i % 5 == 0))
+        t, q, r = mem.window()
+        last = ref[-7:]
+        assert t.tolist() == [x[0] for x in last]
+        assert q.tolist() == [x[1] for x in last]
+        assert r.tolist() == [x[2] for x in last]
