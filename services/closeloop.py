@@ -72,9 +72,6 @@ class CloseLoopService(LiveService):
         self.log_ids = OutputLog(self.state_path / "closeloop.published")
         self._jobs: queue.SimpleQueue[WindowData | None] = queue.SimpleQueue()
         self._worker: threading.Thread | None = None
-        #: windows queued and not yet evaluated
-        self.pending = 0
-        self._plock = threading.Lock()
 
     def setup(self) -> None:
         line = self.spec.name
@@ -116,8 +113,6 @@ class CloseLoopService(LiveService):
         else:
             return
         for w in core.due():
-            with self._plock:
-                self.pending += 1
             self._jobs.put(core.snapshot(w))
 
     def _work(self) -> None:
@@ -132,9 +127,6 @@ class CloseLoopService(LiveService):
                 self.counters.inc("window_errors")
                 self.counters.last_error = f"{type(exc).__name__}: {exc}"[:500]
                 log.exception("closeloop: window %s failed", data.window)
-            finally:
-                with self._plock:
-                    self.pending -= 1
 
     def _publish(self, f: Finding) -> None:
         self.counters.inc("windows_checked")
