@@ -15,6 +15,10 @@ Examples::
 
 Keys have no leading ``/``. Each segment is a non-empty token of ``[A-Za-z0-9_.-]``
 (no wildcards), so a concrete key never matches more than itself.
+
+Every key a service publishes and every key expression it subscribes to is built here: the
+concrete builders below and the wildcard builders (``feeder_flows``, ``events``, ``everything``,
+...), so that no other module spells a key.
 """
 
 from __future__ import annotations
@@ -131,6 +135,85 @@ def service_health(line: str, service: str) -> str:
 
 def service_alive(line: str, service: str) -> str:
     return key(line, "service", "alive", service)
+
+
+def service_ping(line: str, service: str) -> str:
+    """Queryable answering a ping with the service's health and per-key sample counts."""
+    return key(line, "service", "ping", service)
+
+
+def replay_event(line: str) -> str:
+    """Events of the virtual plant's replay (``END_OF_STREAM`` after the last sample)."""
+    return event(line, "plant", "replay")
+
+
+# ---------------------------------------------------------------------------------------------
+# wildcard key expressions (subscriptions, queries)
+
+#: every key of every line
+ALL_LINES = f"{ROOT}/**"
+
+
+def _wild(line: str, *segments: str) -> str:
+    """``twin/<line>/<segments>``; ``line`` may be ``*`` (every line), each other segment a token
+    or the chunk wildcard ``*``."""
+    if line != "*":
+        _check_segment("line", line)
+    for s in segments:
+        if s not in ("*", "**"):
+            _check_segment("segment", s)
+    return "/".join((ROOT, line, *segments))
+
+
+def everything(line: str) -> str:
+    """Every key of a line (``twin/<line>/**``): what the recorder records."""
+    return _wild(line, "**")
+
+
+def feeder_flows(line: str) -> str:
+    """The flows of every feeder (``twin/<line>/feeder/*/flow``)."""
+    return _wild(line, "feeder", "*", "flow")
+
+
+def events(line: str) -> str:
+    """Every event of every unit (``twin/<line>/*/*/event``)."""
+    return _wild(line, "*", "*", "event")
+
+
+def dem_requests(line: str) -> str:
+    """DEM job requests of every job (``twin/<line>/dem/*/request``)."""
+    return _wild(line, "dem", "*", "request")
+
+
+def services_health(line: str) -> str:
+    """Health of every service (``twin/<line>/service/*/health``; ``line`` may be ``*``)."""
+    return _wild(line, "service", "*", "health")
+
+
+def services_alive(line: str) -> str:
+    """Liveliness tokens of every service (``twin/<line>/service/*/alive``)."""
+    return _wild(line, "service", "*", "alive")
+
+
+def services_ping(line: str) -> str:
+    """Ping queryables of every service (``twin/<line>/service/*/ping``)."""
+    return _wild(line, "service", "*", "ping")
+
+
+def is_service_key(expr: str) -> bool:
+    """Whether a key belongs to a service's own reporting (health, ping), not to plant data."""
+    parts = expr.split("/")
+    return len(parts) > 2 and parts[0] == ROOT and parts[2] == "service"
+
+
+#: suffix of the cache queryables of zenoh advanced publishers
+#: (``<key>/@adv/pub/<zid>/<eid>/<meta>``, zenoh-ext's advanced pub/sub wire protocol)
+ADVANCED_CACHE_SUFFIX = "@adv/pub/**"
+
+
+def advanced_caches(key_expr: str) -> str:
+    """The cache queryables of the advanced publishers on ``key_expr`` (their history)."""
+    return f"{key_expr}/{ADVANCED_CACHE_SUFFIX}"
 
 
 # ---------------------------------------------------------------------------------------------

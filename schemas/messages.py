@@ -70,6 +70,10 @@ EventKind = Literal[
     "refill_start", "refill_stop", "tracer_pulse", "disturbance", "disturbance_end", "note"
 ]
 
+#: ``detail`` of the ``note`` Event the virtual plant publishes on ``keys.replay_event(line)``
+#: after its last sample, at that sample's plant time (the diverter then closes what is open)
+END_OF_STREAM = "end-of-stream"
+
 
 class Event(Message):
     """A discrete plant event. Key: ``twin/<line>/<unit>/<id>/event``.
