@@ -128,6 +128,24 @@ class StreamingConvolver:
         start = pos
         return float(np.dot(buf[start : start + k], self._wrev))
 
+    @property
+    def size(self) -> int:
+        """K, the number of E(t) samples (and of inputs kept)."""
+        return self._k
+
+    def amend(self, lag: int, delta: float) -> None:
+        """Add ``delta`` to the input pushed ``lag`` samples before the newest (0: the newest),
+        e.g. a late contribution to a past inlet tick. The next outputs are those of the amended
+        input history; outputs already returned are not revisited (they did not depend on it when
+        e[0..lag] = 0)."""
+        if not 0 <= lag < self._k:
+            raise ValueError(f"lag must be in [0, {self._k}), got {lag!r}")
+        if not np.isfinite(delta):
+            raise ValueError(f"delta must be finite, got {delta!r}")
+        i = (self._pos - 1 - lag) % self._k
+        self._buf[i] += delta
+        self._buf[i + self._k] += delta
+
     def push_many(self, u: np.ndarray) -> np.ndarray:
         """Append a block of inlet samples and return their outlet values (one ``numpy.convolve``)."""
         u = np.asarray(u, dtype=float)

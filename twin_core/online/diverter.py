@@ -64,8 +64,8 @@ class OosDecider:
         line, component: used in ids and messages.
         target, lower, upper: specification at the outlet, % w/w.
         dt: tick of the inlet stream, s.
-        gain: ``window_gain`` of the blender E(t) on the inlet tick (funnel), or None to skip
-            the early feeder flag.
+        gain: the funnel gain of the blender E(t) on the inlet tick
+            (``twin_core.quality.funnel.funnel_gain``), or None to skip the early feeder flag.
         window: traceability ``(t_in_start, t_in_end) -> (t_out_start, t_out_end)``.
         n_on, n_off, hysteresis: outlet episode debounce and deadband.
         inlet_detect, inlet_n_on, inlet_n_off: inlet episode detector.
@@ -113,6 +113,16 @@ class OosDecider:
             )
             for src in ("predicted", "measured")
         }
+
+    def set_funnel(
+        self, gain: np.ndarray | None, window: Callable[[float, float], tuple[float, float]]
+    ) -> None:
+        """A new E(t) (the model the blender adopted): its funnel gain and traceability apply
+        to the inlet episodes from now on (an episode in progress keeps its id)."""
+        self.gain, self.window = gain, window
+        if self._flagger is not None and gain is not None:
+            self._flagger.gain = np.asarray(gain, dtype=float)
+            self._flagger.window = window
 
     @property
     def limit(self) -> float:

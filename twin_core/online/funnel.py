@@ -8,10 +8,10 @@ Eq. (1) of :mod:`twin_core.online.convolution`) whose maximum is
 
 the largest fraction of the RTD mass inside any window of length d (Engisch & Muzzio 2016,
 J. Pharm. Innov. 11:64; the "funnel plot" of the seed, chapter 6: the feasible region is the set
-of (d, h) whose maximum outlet deviation stays inside the limit). On the sampled grid a pulse of
-m samples gives exactly ``g[m] = dt * max_i sum_{j=i}^{i+m-1} e[j]`` (:func:`window_gain`), so a
-disturbance of (m, h) is predicted to leave the specification **iff** ``|h| c_target g[m]``
-exceeds the allowed deviation.
+of (d, h) whose maximum outlet deviation stays inside the limit). g on the tick grid is
+``twin_core.quality.funnel.funnel_gain`` (the twin's one funnel gain), so a disturbance of
+(m ticks, h) is predicted to leave the specification **iff** ``|h| c_target g[m]`` exceeds the
+allowed deviation.
 
 :class:`FunnelFlagger` watches the inlet concentration (from the feeder flows), finds deviation
 episodes with a :class:`~twin_core.online.alerts.HysteresisTracker` and, as soon as the episode
@@ -25,7 +25,6 @@ other than a rectangle (the peak is held over the whole episode).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -34,33 +33,7 @@ import numpy as np
 
 from twin_core.online.alerts import Episode, HysteresisTracker
 
-__all__ = ["window_gain", "FlagEvent", "FunnelFlagger"]
-
-
-def window_gain(e: np.ndarray, dt: float) -> np.ndarray:
-    """Funnel gain of Eq. (1) on the sampled grid.
-
-    Args:
-        e: E(t) on the grid k*dt (1/s), K samples.
-        dt: sampling interval, s.
-
-    Returns:
-        g with ``g[m]`` (m = 0..K) the largest ``dt * sum`` of m consecutive samples of e:
-        the maximum outlet response (as a fraction of h c_target) to a rectangular inlet pulse
-        of m samples. g[0] = 0, g is non-decreasing and g[K] = dt * sum(e). Pulses longer than
-        K samples have gain g[K].
-    """
-    e = np.asarray(e, dtype=float)
-    if e.ndim != 1 or e.size == 0:
-        raise ValueError(f"e must be a non-empty 1-D array, got shape {e.shape}")
-    if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be > 0, got {dt!r}")
-    c = np.concatenate([[0.0], np.cumsum(e)]) * dt
-    k = e.size
-    g = np.zeros(k + 1)
-    for m in range(1, k + 1):
-        g[m] = float(np.max(c[m:] - c[:-m]))
-    return np.maximum.accumulate(g)
+__all__ = ["FlagEvent", "FunnelFlagger"]
 
 
 @dataclass
@@ -91,7 +64,7 @@ class FunnelFlagger:
     Args:
         target: target concentration (the same at inlet and outlet at steady state), % w/w.
         lower, upper: outlet specification limits, % w/w.
-        gain: ``window_gain(e, dt)`` of the blender's E(t).
+        gain: ``twin_core.quality.funnel.funnel_gain(e, dt)`` of the blender's E(t).
         dt: sampling interval of the inlet stream, s.
         window: RTD traceability ``(t_in_start, t_in_end) -> (t_out_start, t_out_end)``.
         detect: inlet deviation from target that starts an episode, % w/w (> 0).

@@ -80,18 +80,36 @@ class LineInputs:
 def rtd_kernel(blender: BlenderSpec, tk: np.ndarray, effects: Sequence[Effect] = ()) -> np.ndarray:
     """E(t) of the blender on ``tk`` (uniform from 0) with the rtd-stage effects applied.
 
-    The base E is ``twin_core.rtd.models.<blender.model>(tk, **params)``.
+    The base E is ``twin_core.rtd.models.model_e(blender.model, params, tk)`` (the one E(t)
+    builder), its parameters first changed by the effects' ``blender_params``, then each
+    effect's ``apply_rtd`` in order.
     """
-    from twin_core.rtd import models as rtd_models
+    from twin_core.rtd.models import model_e
 
     rtd_eff = sorted((e for e in effects if e.stage == "rtd"), key=lambda e: e.order)
     params = dict(blender.params)
     for e in rtd_eff:
         params = e.blender_params(blender.model, params)
-    e_t = np.asarray(getattr(rtd_models, blender.model)(tk, **params), dtype=float)
+    e_t = model_e(blender.model, params, tk)
     for e in rtd_eff:
         e_t = e.apply_rtd(tk, e_t, blender)
     return e_t
+
+
+def pulse_bin_flow(
+    t: np.ndarray | float, dt: float, t0: float, t1: float, rate: float
+) -> np.ndarray:
+    """Mean over each tick bin [t - dt/2, t + dt/2) of a flow ``rate`` lasting over [t0, t1):
+
+        q(t) = rate * max(0, min(t + dt/2, t1) - max(t - dt/2, t0)) / dt,
+
+    so that sum q dt = rate (t1 - t0) exactly (a tracer pulse's mass). The one spreading of a
+    tracer pulse onto the inlet grid: the declared model (:func:`inlet_component_flows`) and the
+    live inlet (``twin_core.online.inlet.TracerInjector``) both use it.
+    """
+    t = np.asarray(t, dtype=float)
+    overlap = np.clip(np.minimum(t + 0.5 * dt, t1) - np.maximum(t - 0.5 * dt, t0), 0.0, None)
+    return rate * overlap / dt
 
 
 def _inlet_parts(
@@ -109,12 +127,9 @@ def _inlet_parts(
         c = inputs.components[name]
         feed[c] = feed.get(c, 0.0) + q
     tracer: dict[str, np.ndarray] = {}
-    edges_lo = t - 0.5 * dt
     for p in inputs.tracers:
-        a, b = p.t_s, p.t_s + p.duration_s
-        overlap = np.clip(np.minimum(edges_lo + dt, b) - np.maximum(edges_lo, a), 0.0, None)
-        rate = p.mass_kg / p.duration_s * overlap / dt
-        tracer[p.component] = tracer.get(p.component, 0.0) + rate
+        q = pulse_bin_flow(t, dt, p.t_s, p.t_s + p.duration_s, p.mass_kg / p.duration_s)
+        tracer[p.component] = tracer.get(p.component, 0.0) + q
     return feed, tracer
 
 
@@ -122,8 +137,8 @@ def inlet_component_flows(
     inputs: LineInputs, effects: Sequence[Effect] = ()
 ) -> dict[str, np.ndarray]:
     """Inlet mass flow per component (kg/s) on inputs.t_s: delivered feeder flows (feeder-stage
-    effects applied to their target feeder) plus tracer pulses (mass / duration over the pulse,
-    spread over the grid bins [t - dt/2, t + dt/2) it overlaps, so the mass is exact)."""
+    effects applied to their target feeder) plus tracer pulses (:func:`pulse_bin_flow`: mass /
+    duration over the pulse, spread over the grid bins it overlaps, so the mass is exact)."""
     feed, tracer = _inlet_parts(inputs, effects)
     out = {c: np.asarray(q, dtype=float) for c, q in feed.items()}
     for c, q in tracer.items():

@@ -26,6 +26,7 @@ from twin_core.rtd.convolution import convolve, cumulative, uniform_dt
 __all__ = [
     "FunnelResult",
     "max_window_fraction",
+    "funnel_gain",
     "funnel",
     "funnel_brute_force",
     "compare_funnels",
@@ -107,6 +108,26 @@ def max_window_fraction(t: ArrayLike, e: ArrayLike, durations: ArrayLike) -> NDA
         b = np.interp(tt + di, tt, f, right=1.0) - f
         out[i] = max(a.max(), b.max())
     return out
+
+
+def funnel_gain(e: ArrayLike, dt: float) -> NDArray[np.float64]:
+    """The funnel boundary on a tick grid: g[m] = M(m dt) for pulses of m = 0..K ticks,
+
+        M(d) = max_t [F(t) - F(t - d)]   (:func:`max_window_fraction`),
+
+    with E given on t = k dt, k = 0..K-1 (F normalised to 1), made non-decreasing in m (a longer
+    pulse never leaves less). A rectangular inlet deviation of h lasting m ticks gives a largest
+    outlet deviation h g[m] (Engisch & Muzzio 2016; the seed's funnel plot, ch. 6). The one
+    funnel gain of the twin: the diverter's early flag of feeder disturbances
+    (``twin_core.online.funnel.FunnelFlagger``) uses it.
+    """
+    e = np.asarray(e, dtype=float)
+    if e.ndim != 1 or e.size < 2:
+        raise ValueError(f"e must be a 1-D array of >= 2 samples, got shape {e.shape}")
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be > 0, got {dt!r}")
+    tk = np.arange(e.size) * dt
+    return np.maximum.accumulate(max_window_fraction(tk, e, np.arange(e.size + 1) * dt))
 
 
 def funnel(

@@ -20,7 +20,7 @@ References
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,7 +47,9 @@ __all__ = [
     "fourier_inverse",
     "ModelSpec",
     "MODELS",
+    "E_FUNCTIONS",
     "get_model",
+    "model_e",
 ]
 
 
@@ -609,3 +611,40 @@ def get_model(name: str) -> ModelSpec:
     if key not in MODELS:
         raise ValueError(f"model must be one of {sorted(MODELS)}, got {name!r}")
     return MODELS[key]
+
+
+#: the E(t) functions a configuration or a wire message may name (``LineSpec.blender.model``,
+#: ``RtdEstimate.model``), by function name
+E_FUNCTIONS: dict[str, Callable[..., NDArray]] = {
+    f.__name__: f
+    for f in (
+        axial_dispersion_open,
+        axial_dispersion_closed,
+        tanks_in_series,
+        cstr_pfr,
+        cstr,
+        convection,
+        plug_flow_dispersion_high_pe,
+        emg,
+        zusatz,
+        axial_dispersion_open_dead_volume,
+        axial_dispersion_open_bypass,
+        tanks_in_series_bypass,
+    )
+}
+
+
+def model_e(model: str, params: Mapping[str, float], t: ArrayLike) -> NDArray[np.float64]:
+    """E(t) (1/s) of the RTD model named ``model`` with parameters ``params`` on the times ``t``.
+
+    The one builder of a named model's E(t): the declared line model
+    (``twin_core.plant.model.rtd_kernel``), the live blender prediction and the diverter's
+    funnel and lot boundaries (``twin_core.online.blender.BlenderKernel``) all evaluate E(t)
+    here. ``model`` is a function name of this module (:data:`E_FUNCTIONS`, e.g.
+    ``axial_dispersion_open``: Levenspiel 1999 Eq. 13.19 with a plug-flow delay); ``params`` are
+    its keyword arguments in SI units.
+    """
+    fn = E_FUNCTIONS.get(model)
+    if fn is None:
+        raise ValueError(f"model must be one of {sorted(E_FUNCTIONS)}, got {model!r}")
+    return np.asarray(fn(t, **params), dtype=float)
