@@ -1,9 +1,7 @@
-"""The online close-loop without the bus: windows, adoption, and the blender's adopted model.
-
-References: the plant simulator's ground truth (the injected effect and its size), and the batch
-line model (``twin_core.plant.model.outlet_concentration``, mass-flow-weighted convolution
-c_i = 100 (E*m_i)/(E*sum m)) as the peer of the blender's streaming prediction.
-"""
+"""The online close-loop without the bus: windows and adoption (reference: the plant simulator's
+ground truth, the injected effect and its size); its record of the line
+(``twin_core.closeloop.record.LineRecord``, the one message-to-array adapter, online and
+offline)."""
 
 from __future__ import annotations
 
@@ -13,11 +11,9 @@ import numpy as np
 import pytest
 
 from schemas.line import LineSpec
-from services.blender import BlenderPredictor
 from twin_core.closeloop.online import OnlineCloseLoop, Window
 from twin_core.plant import simulate_line
 from twin_core.plant.config import FlowDisturbance
-from twin_core.plant.model import LineModel
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
 DIST = [
@@ -81,66 +77,56 @@ def test_no_effect_no_claim_and_bad_input_is_named():
         OnlineCloseLoop(cfg, 1.0, skip_s=700.0, min_window_s=600.0)
 
 
-@pytest.mark.parametrize(
-    "effects",
-    [
-        [{"name": "dead_zone", "params": {"fraction": 0.3, "tau_s": 40.0}}],
-        [
-            {"name": "extra_delay", "params": {"delay_s": 7.5}},
-            {"name": "back_mixing", "params": {"pe_factor": 0.5}},
-        ],
-        [{"name": "refill_surge", "target": "api", "params": {"amplitude": 0.4, "tau_s": 30.0}}],
-    ],
-    ids=["dead_zone", "delay+backmixing", "refill_surge"],
-)
-def test_blender_streaming_prediction_with_adopted_effects_equals_the_batch_model(effects):
-    """Peer: the batch line model with the same effects on the same reported flows (refills
-    included), after the streaming kernel's start-up (the batch model starts from steady state
-    analytically)."""
-    data = LineSpec.from_file(CONFIG).model_dump()
-    data["feeders"][0]["liw"] = dict(initial_mass_kg=0.6, refill_low_kg=0.45, refill_high_kg=0.65)
-    spec = LineSpec.model_validate(data)
-    cfg = spec.plant_config()
-    run = simulate_line(cfg, 900.0, seed=2, disturbances=DIST[:2])
-    assert any(r.refilling.any() for r in run.feeders.values())
-    bp = BlenderPredictor(spec)
-    assert bp.set_effects(effects) == []
-    out: dict[float, float] = {}
-    for i, t in enumerate(run.t_s):
-        for name, rec in run.feeders.items():
-            for tt, c in bp.push(name, float(t), rec.flow_kg_h[i], bool(rec.refilling[i])):
-                out[tt] = c["api"]
-    batch = LineModel(cfg, effects).outlet(run.inputs())["api"]
-    stream = np.array([out[float(t)] for t in run.t_s])
-    late = run.t_s >= spec.blender.kernel_s
-    np.testing.assert_allclose(stream[late], batch[late], atol=1e-6)
+def test_the_record_keys_flows_by_feeder_and_takes_refills_from_the_flags():
+    """Two feeders of one component stay two inputs (the declared model sums them per
+    component); refill state is the flags' (a refill event on the bus is not read), and the
+    window's events carry refills at the flags' edges; the record of the same messages gives the
+    same arrays online (window by window) and offline (from_messages)."""
+    from schemas import keys
+    from schemas.messages import Event, FeederFlow, MeasuredConcentration
+    from twin_core.closeloop.record import LineRecord
+    from twin_core.plant.model import inlet_component_flows
 
-
-def test_blender_refuses_drifts_and_sensor_effects():
-    spec = LineSpec.from_file(CONFIG)
-    bp = BlenderPredictor(spec)
-    left = bp.set_effects(
-        [
-            {"name": "feed_factor_drift", "target": "api", "params": {"rate_per_h": 0.2}},
-            {"name": "sensor_offset", "params": {"offset": 0.3}},
-            {"name": "bypass", "params": {"fraction": 0.1}},
-        ]
-    )
-    assert sorted(e.name for e in left) == ["feed_factor_drift", "sensor_offset"]
-    assert [e.name for e in bp.effects] == ["bypass"]
-
-
-def test_blender_flow_memory_keeps_the_last_samples_in_order_across_wraps():
-    """The feeder-effect memory (doubled buffer) against a plain list of the same samples."""
-    from services.blender import _FlowMemory
-
-    mem = _FlowMemory(7)
-    ref = []
-    for i in range(40):
-        mem.append(float(i), 10.0 + i, i % 5 == 0)
-        ref.append((float(i), 10.0 + i, i % 5 == 0))
-        t, q, r = mem.window()
-        last = ref[-7:]
-        assert t.tolist() == [x[0] for x in last]
-        assert q.tolist() == [x[1] for x in last]
-        assert r.tolist() == [x[2] for x in last]
+    comps = {"api_a": "api", "api_b": "api", "exc": "excipient"}
+    msgs = []
+    for i in range(20):
+        t = float(i)
+        for f, q in (("api_a", 0.5 + 0.01 * i), ("api_b", 0.7), ("exc", 10.8)):
+            flow = FeederFlow(
+                t=t,
+                seq=i,
+                component=comps[f],
+                mass_flow_kg_h=q,
+                screw_speed_rpm=30.0,
+                hopper_mass_kg=1.0,
+                feed_factor_g_rev=0.5,
+                refilling=(f == "api_b" and 5 <= i < 9),
+            )
+            msgs.append((keys.feeder_flow("l", f), flow))
+        nir = MeasuredConcentration(
+            t=t, seq=i, sensor="nir1", component="api", concentration_pct_w_w=10.0
+        )
+        msgs.append((keys.measured_concentration("l", "nir1"), nir))
+    refill = Event(t=2.0, seq=0, kind="refill_start", source="exc")
+    msgs.insert(7, (keys.event("l", "feeder", "exc"), refill))
+    offline = LineRecord.from_messages(msgs, comps, 1.0, "api")
+    data = offline.run_data("test")
+    q = data.inputs.flows_kg_h
+    assert sorted(q) == ["api_a", "api_b", "exc"]
+    np.testing.assert_allclose(q["api_a"], 0.5 + 0.01 * np.arange(20))
+    np.testing.assert_allclose(inlet_component_flows(data.inputs)["api"] * 3600.0, q["api_a"] + 0.7)
+    assert data.inputs.refilling["api_b"].nonzero()[0].tolist() == [5, 6, 7, 8]
+    assert not data.inputs.refilling["exc"].any()
+    kinds = [(e["kind"], e["source"], e["t_s"]) for e in data.events]
+    assert kinds == [("refill_start", "api_b", 5.0), ("refill_stop", "api_b", 9.0)]
+    online = LineRecord(comps, 1.0, "api")
+    assert [online.add_message(k, m) for k, m in msgs[:4]] == ["flow"] * 3 + ["measured"]
+    for k, m in msgs[4:]:
+        online.add_message(k, m)
+    t, y, inputs, events = online.arrays(0.0, 19.0)
+    np.testing.assert_array_equal(t, data.t_s)
+    np.testing.assert_array_equal(y, data.measured)
+    assert events == data.events
+    for f in comps:
+        np.testing.assert_array_equal(inputs.flows_kg_h[f], q[f])
+    assert online.add_message(keys.feeder_flow("l", "nope"), msgs[0][1]) == "unknown_feeder"

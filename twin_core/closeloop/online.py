@@ -1,13 +1,15 @@
 """The close-loop on a running line: stream samples in, get a finding per window.
 
 :class:`OnlineCloseLoop` keeps the recent feeder flows (with refill flags), NIR readings and
-tracer pulses on the line's tick grid. Every ``interval_s`` of plant time, once ``min_window_s``
-of data is in, the current model (the declared one plus the effects adopted so far) is checked
-on the last ``window_s`` with :func:`twin_core.closeloop.report.online_finding` (residual ->
-candidate effects -> held-out test; Akaike/Schwarz selection and the held-out likelihood-ratio
-test of ``twin_core.closeloop.identify``). An ``explained`` finding is adopted: the model used
-for the next windows is the augmented one, so an effect is found once and later windows check
-that the fix holds (``consistent``).
+tracer pulses on the line's tick grid (``twin_core.closeloop.record.LineRecord``, the twin's one
+message-to-array adapter, also used offline by ``twin close-loop``). Every ``interval_s`` of
+plant time, once ``min_window_s`` of data is in, the current model (the declared one plus the
+effects adopted so far) is checked on the last ``window_s`` with
+:func:`twin_core.closeloop.report.online_finding` (residual -> candidate effects -> held-out
+test; Akaike/Schwarz selection and the held-out likelihood-ratio test of
+``twin_core.closeloop.identify``). An ``explained`` finding is adopted: the model used for the
+next windows is the augmented one, so an effect is found once and later windows check that the
+fix holds (``consistent``).
 
 Windows are closed in plant time, when every stream has passed their end, so the findings do not
 depend on the order or the speed at which the samples arrive.
@@ -22,8 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from twin_core.closeloop.record import LineRecord
 from twin_core.closeloop.report import Finding, online_finding
-from twin_core.plant.config import LineConfig, TracerPulse
+from twin_core.plant.config import LineConfig
 from twin_core.plant.model import LineInputs, LineModel
 
 
@@ -91,24 +94,17 @@ class OnlineCloseLoop:
         self.max_effects = int(max_effects)
         self.components = {f.name: f.component for f in config.feeders}
         self.model_ = LineModel(config, list(effects))
-        self._flows: dict[str, dict[int, tuple[float, bool, float]]] = {
-            f: {} for f in self.components
-        }
-        self._meas: dict[int, float] = {}
-        self._tracers: dict[tuple[float, str], TracerPulse] = {}
-        self._events: list[dict[str, Any]] = []
-        self._t0: int | None = None
+        self.record = LineRecord(self.components, self.dt_s, config.sensor.component)
         self._next_due: int | None = None
         self.findings_: list[Finding] = []
 
     # -- input -----------------------------------------------------------------------------
     def _tick(self, t: float) -> int:
-        return int(round(t / self.dt_s))
+        return self.record.tick(t)
 
-    def _start(self, k: int) -> None:
-        if self._t0 is None:
-            self._t0 = k
-            self._next_due = k + int(round(self.min_window_s / self.dt_s))
+    @property
+    def _t0(self) -> int | None:
+        return self.record.first_tick
 
     def add_flow(
         self,
@@ -119,48 +115,32 @@ class OnlineCloseLoop:
         screw_speed_rpm: float = math.nan,
     ) -> None:
         """A reported feeder flow (kg/h) at plant time t (its refill flag and screw speed)."""
-        if feeder not in self._flows:
-            raise ValueError(f"feeder must be one of {sorted(self._flows)}, got {feeder!r}")
-        if not np.isfinite(flow_kg_h) or flow_kg_h < 0:
-            raise ValueError(f"flow_kg_h must be finite and >= 0, got {flow_kg_h!r}")
-        k = self._tick(t)
-        self._start(k)
-        self._flows[feeder][k] = (float(flow_kg_h), bool(refilling), float(screw_speed_rpm))
+        self.record.add_flow(feeder, t, flow_kg_h, refilling, screw_speed_rpm)
+        self._start()
+
+    def _start(self) -> None:
+        if self._next_due is None and self._t0 is not None:
+            self._next_due = self._t0 + int(round(self.min_window_s / self.dt_s))
 
     def add_measured(self, t: float, c_pct_w_w: float) -> None:
         """A reading of the NIR probe (% w/w) at plant time t."""
-        if not np.isfinite(c_pct_w_w):
-            raise ValueError(f"c_pct_w_w must be finite, got {c_pct_w_w!r}")
-        self._meas[self._tick(t)] = float(c_pct_w_w)
+        self.record.add_measured(t, c_pct_w_w)
 
     def add_event(self, event: Mapping[str, Any]) -> None:
         """A plant event as a dict (``kind``, ``t_s``, ``source``, ...); ``tracer_pulse`` events
         with ``mass_kg`` enter the model's inlet as pulses of ``component`` (or ``source``)."""
-        ev = dict(event)
-        if "t_s" not in ev or "kind" not in ev:
-            raise ValueError(f"event must have 't_s' and 'kind', got {sorted(ev)}")
-        self._events.append(ev)
-        if ev["kind"] == "tracer_pulse" and ev.get("mass_kg"):
-            comp = ev.get("component") or ev.get("source")
-            key = (float(ev["t_s"]), str(comp))
-            if key not in self._tracers:
-                self._tracers[key] = TracerPulse(
-                    float(ev["t_s"]),
-                    float(ev["mass_kg"]),
-                    str(comp),
-                    float(ev.get("duration_s") or 1.0),
-                )
+        self.record.add_event(event)
+
+    def add_message(self, key: str, msg: Any) -> str:
+        """A decoded bus message (``LineRecord.add_message``); returns what it was."""
+        kind = self.record.add_message(key, msg)
+        self._start()
+        return kind
 
     # -- windows ---------------------------------------------------------------------------
-    def _last_complete_tick(self) -> int | None:
-        ends = [max(d) if d else None for d in self._flows.values()]
-        if any(e is None for e in ends) or not self._meas:
-            return None
-        return min(min(ends), max(self._meas))  # type: ignore[type-var]
-
     def due(self) -> list[Window]:
         """The windows whose end every stream has passed, oldest first (each returned once)."""
-        last = self._last_complete_tick()
+        last = self.record.last_complete_tick()
         out: list[Window] = []
         if last is None or self._next_due is None or self._t0 is None:
             return out
@@ -174,39 +154,9 @@ class OnlineCloseLoop:
         return out
 
     def window_data(self, w: Window) -> tuple[np.ndarray, np.ndarray, LineInputs, list[dict]]:
-        """(t, measured, inputs, events) of a window on the tick grid. A missing flow sample
-        holds the previous one (the first available one at the start); a missing reading is NaN
-        (left out of the fit)."""
-        a, b = self._tick(w.t_start_s), self._tick(w.t_end_s)
-        ks = np.arange(a, b + 1)
-        t = ks * self.dt_s
-        flows: dict[str, np.ndarray] = {}
-        refill: dict[str, np.ndarray] = {}
-        rpm: dict[str, np.ndarray] = {}
-        for f, d in self._flows.items():
-            q = np.full(ks.size, np.nan)
-            r = np.zeros(ks.size, dtype=bool)
-            s = np.full(ks.size, np.nan)
-            for i, k in enumerate(ks):
-                v = d.get(int(k))
-                if v is not None:
-                    q[i], r[i], s[i] = v
-            good = np.isfinite(q)
-            if not good.any():
-                raise ValueError(f"no flow of feeder {f!r} in window [{w.t_start_s}, {w.t_end_s}]")
-            idx = np.where(good, np.arange(ks.size), -1)
-            idx = np.maximum.accumulate(idx)
-            idx[idx < 0] = int(np.argmax(good))
-            flows[f] = q[idx]
-            refill[f] = r
-            if np.isfinite(s).sum() >= 2:
-                ok = np.isfinite(s)
-                rpm[f] = np.interp(ks, ks[ok], s[ok])
-        y = np.array([self._meas.get(int(k), np.nan) for k in ks])
-        tracers = [p for p in self._tracers.values() if t[0] - 600.0 <= p.t_s <= t[-1]]
-        inputs = LineInputs(t, flows, dict(self.components), refill, tracers, rpm)
-        events = [e for e in self._events if t[0] <= float(e["t_s"]) <= t[-1]]
-        return t, y, inputs, events
+        """(t, measured, inputs, events) of a window on the tick grid
+        (``LineRecord.arrays``)."""
+        return self.record.arrays(w.t_start_s, w.t_end_s)
 
     def snapshot(self, w: Window) -> WindowData:
         """The arrays of window ``w``; then forget the data no later window needs. Cheap: the
@@ -237,11 +187,4 @@ class OnlineCloseLoop:
 
     def _prune(self, end: int) -> None:
         """Forget what no later window can use."""
-        keep_from = end - int(round(self.window_s / self.dt_s)) + 1
-        for d in self._flows.values():
-            for k in [k for k in d if k < keep_from]:
-                del d[k]
-        for k in [k for k in self._meas if k < keep_from]:
-            del self._meas[k]
-        lo = keep_from * self.dt_s - 600.0
-        self._events = [e for e in self._events if float(e["t_s"]) >= lo]
+        self.record.prune(end - int(round(self.window_s / self.dt_s)) + 1)

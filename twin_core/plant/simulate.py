@@ -121,7 +121,11 @@ class LineRun:
         }
 
 
-def _simulate_feeder(spec, duration_s: float, dt_s: float, n: int, seed) -> FeederRecord:
+def simulate_feeder(spec, duration_s: float, dt_s: float, n: int, seed) -> FeederRecord:
+    """One feeder of the line on ``n`` ticks of ``dt_s``: the LIW simulator
+    (``twin_core.feeder.LossInWeightFeeder``) run at its control period, each tick the mean flow
+    of its sub-steps, the screw speed, hopper mass and feed factor at the tick's start and the
+    refill flag up if any sub-step refilled; an ``ideal`` feeder runs at its set point."""
     t = np.arange(n) * dt_s
     if spec.ideal:
         q = np.full(n, spec.setpoint_kg_h)
@@ -205,7 +209,7 @@ def simulate_line(
     feeders: dict[str, FeederRecord] = {}
     events: list[Event] = []
     for spec, child in zip(config.feeders, children[:-1]):
-        rec = _simulate_feeder(spec, duration_s, dt_s, n, np.random.default_rng(child))
+        rec = simulate_feeder(spec, duration_s, dt_s, n, np.random.default_rng(child))
         feeders[spec.name] = rec
         for a, b in rec.refills:
             events.append(Event(a, "refill_start", spec.name))

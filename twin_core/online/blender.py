@@ -1,0 +1,284 @@
+"""Live prediction of the blender outlet from the feeder flows (the blender service's core).
+
+The mass-flow-weighted RTD model of the declared line (``twin_core.plant.model``):
+
+    c_i(t) = 100 (E * m_i)(t) / (E * sum_j m_j)(t)   [% w/w]
+
+one streaming convolution (:class:`~twin_core.online.convolution.StreamingConvolver`) per
+component mass flow m_i (reported feeder flows plus announced tracer pulses), the stream starting
+at steady state (the first flows). :class:`BlenderKernel` is the blender's E(t) on the tick grid
+as the twin adopts it: the declared model (``twin_core.rtd.models.model_e``, or a compartment
+export's impulse response), replaced by an adopted RTD estimate, transformed by adopted rtd-stage
+effects (dead zone, bypass, extra delay, back-mixing: ``twin_core.plant.model.rtd_kernel``). The
+diverter uses the same object, so it follows the model the blender adopted.
+
+:class:`BlenderPredictor` adds the adopted feeder-stage effects (e.g. a refill surge turns each
+feeder's reported flow into the delivered one, causally, from the feeder's recent flows).
+Effects that grow with time from the start of their window (drifts) and sensor effects (the
+probe, not the outlet) are not adopted.
+
+A tracer event may arrive after the flows of its tick (another route, another publisher): the
+tick's convolution input is then corrected in place. E(t) of a blender with a plug-flow delay is
+exactly zero for its first samples, so the outlet values already given did not depend on that
+input: the predictions equal those of an in-order arrival whenever the event is less than the
+delay late.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from schemas.line import LineSpec
+from twin_core.online.convolution import StreamingConvolver
+from twin_core.online.inlet import FeederSample, InletStream, InletTick, tracer_pulse
+from twin_core.plant.config import TracerPulse
+from twin_core.plant.effects import Effect, make_effect
+from twin_core.rtd.models import model_e
+
+__all__ = ["BlenderKernel", "BlenderPredictor", "FlowMemory", "declared_kernel", "tick_grid"]
+
+
+def tick_grid(dt_s: float, length_s: float) -> np.ndarray:
+    """Times k dt, 0 <= t < length_s, of an E(t) on the line's tick grid."""
+    return np.arange(int(np.ceil(length_s / dt_s))) * dt_s
+
+
+def declared_kernel(spec: LineSpec) -> np.ndarray:
+    """E(t) of the configured blender model on the line's tick grid (``spec.dt_s``, over
+    ``blender.kernel_s``): a ``twin_core.rtd.models`` model, or a compartment export's impulse
+    response."""
+    b = spec.blender
+    t = tick_grid(spec.dt_s, b.kernel_s)
+    if b.kind == "rtd":
+        return model_e(b.model, dict(b.params), t)
+    from schemas.blender_model import BlenderModel
+
+    model = BlenderModel.model_validate_json(Path(b.export_path).read_text())
+    return np.asarray(model.impulse_response(t), dtype=float)
+
+
+class BlenderKernel:
+    """The blender's E(t) on the tick grid as the twin adopts it (see the module docstring).
+
+    Args:
+        spec: the line (declared blender model, tick, kernel length).
+        e: an E(t) to start from instead of the declared one (no named RTD model then: rtd-stage
+            effects cannot be adopted).
+    """
+
+    #: longest E(t) an adopted effect may stretch the kernel to, s
+    MAX_KERNEL_S = 7200.0
+
+    def __init__(self, spec: LineSpec, e: np.ndarray | None = None) -> None:
+        b = spec.blender
+        self.dt = spec.dt_s
+        self.length_s = b.kernel_s
+        #: the RTD model E(t) is built from (declared, or the latest estimate); None: compartment
+        self.rtd_model: tuple[str, dict[str, float]] | None = (
+            (b.model, dict(b.params)) if b.kind == "rtd" and e is None else None
+        )
+        #: name of the model in use (``PredictedConcentration.model``)
+        self.model_name = b.model if b.kind == "rtd" else "compartment"
+        #: adopted effects (rtd and feeder stage)
+        self.effects: list[Effect] = []
+        self.e = declared_kernel(spec) if e is None else np.asarray(e, float)
+
+    def adoptable(self, effect: Effect) -> bool:
+        """Can this effect change the prediction of the outlet (see the module docstring)?"""
+        if not effect.time_invariant or effect.stage == "sensor":
+            return False
+        return effect.stage == "feeder" or self.rtd_model is not None
+
+    def adopt_estimate(self, model: str, params: Mapping[str, float]) -> np.ndarray:
+        """An adopted RTD estimate: the new base E(t) (the adopted rtd effects stay on top of it
+        when the blender is an RTD model); returns the new E(t)."""
+        if self.rtd_model is not None:
+            self.rtd_model = (model, dict(params))
+            self.e = self._with_effects()
+        else:
+            self.e = model_e(model, dict(params), tick_grid(self.dt, self.length_s))
+        self.model_name = model
+        return self.e
+
+    def adopt_effects(self, effects: Sequence[Effect | Mapping]) -> list[Effect]:
+        """Adopt a model's effects; returns the ones that could not be adopted."""
+        effs = [make_effect(e) for e in effects]
+        self.effects = [e for e in effs if self.adoptable(e)]
+        if self.rtd_model is not None:
+            self.e = self._with_effects()
+        return [e for e in effs if not self.adoptable(e)]
+
+    def same_effects(self, effects: Sequence[Mapping]) -> bool:
+        """Whether ``effects`` (dict form) are the adopted ones."""
+        return list(effects) == [e.to_dict() for e in self.effects]
+
+    def _with_effects(self) -> np.ndarray:
+        """E(t) of the RTD model with the adopted rtd-stage effects, on the tick grid. An
+        adopted effect may lengthen the tail (a dead zone of tau_s up to 600 s): E(t) is kept
+        until less than 1e-7 of its mass is left out (at most ``MAX_KERNEL_S``)."""
+        from twin_core.plant.config import BlenderSpec
+        from twin_core.plant.model import rtd_kernel
+
+        assert self.rtd_model is not None
+        model, params = self.rtd_model
+        n = int(np.ceil(self.length_s / self.dt))
+        n_max = max(n, int(np.ceil(self.MAX_KERNEL_S / self.dt)))
+        e = rtd_kernel(BlenderSpec(model, dict(params)), np.arange(n_max) * self.dt, self.effects)
+        tail = self.dt * (e.sum() - np.cumsum(e))
+        n_need = int(np.argmax(tail < 1e-7)) + 1 if np.any(tail < 1e-7) else n_max
+        return e[: max(n, n_need)]
+
+
+class FlowMemory:
+    """The last ``size`` (t, flow, refilling) samples of one feeder as contiguous arrays, oldest
+    first (a doubled buffer: O(1) append amortised, no copy to read)."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.t = np.empty(2 * size)
+        self.q = np.empty(2 * size)
+        self.r = np.zeros(2 * size, dtype=bool)
+        self.end = 0
+
+    def append(self, t: float, q: float, refilling: bool) -> None:
+        if self.end == 2 * self.size:  # keep the newest size - 1, then append
+            keep = self.size - 1
+            for a in (self.t, self.q, self.r):
+                a[:keep] = a[self.end - keep : self.end]
+            self.end = keep
+        self.t[self.end], self.q[self.end], self.r[self.end] = t, q, refilling
+        self.end += 1
+
+    def window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a = max(0, self.end - self.size)
+        return self.t[a : self.end], self.q[a : self.end], self.r[a : self.end]
+
+
+class BlenderPredictor:
+    """The prediction core (no bus): feed feeder samples, get outlet concentrations per tick.
+
+    Args:
+        spec: the line.
+        e: an E(t) on the tick grid to use instead of the declared blender model.
+    """
+
+    #: reported flow kept per feeder for the feeder-stage effects (ticks; a refill surge decays
+    #: within its tau <= 180 s, so 1800 ticks leave < exp(-10) of it out)
+    FLOW_MEMORY = 1800
+
+    def __init__(self, spec: LineSpec, e: np.ndarray | None = None) -> None:
+        self.spec = spec
+        self.components = spec.components
+        self.comp_names = sorted(set(self.components.values()))
+        self.kernel = BlenderKernel(spec, e)
+        self.inlet = InletStream(
+            self.components, spec.dt_s, max_lag=max(1, int(spec.inlet_max_lag_s / spec.dt_s))
+        )
+        self.conv: dict[str, StreamingConvolver] | None = None
+        self._last_tick: float | None = None
+        self._hist: dict[str, FlowMemory] = {}
+
+    @property
+    def e(self) -> np.ndarray:
+        """E(t) in use, on the tick grid."""
+        return self.kernel.e
+
+    @property
+    def effects(self) -> list[Effect]:
+        """The adopted effects."""
+        return self.kernel.effects
+
+    def set_kernel(self, e: np.ndarray) -> None:
+        """Replace E(t) (e.g. an adopted RTD estimate), keeping the flow history."""
+        self.kernel.e = np.asarray(e, float)
+        self._update_convolvers()
+
+    def _update_convolvers(self) -> None:
+        if self.conv is not None:
+            for c in self.conv.values():
+                c.set_kernel(self.kernel.e)
+
+    def adopt_estimate(self, model: str, params: Mapping[str, float]) -> None:
+        """An RTD estimate (``twin/<line>/rtd/estimate``) becomes the blender's RTD."""
+        self.kernel.adopt_estimate(model, params)
+        self._update_convolvers()
+
+    def set_effects(self, effects: Sequence[Effect | Mapping]) -> list[Effect]:
+        """Adopt a model's effects; returns the ones that could not be adopted."""
+        left = self.kernel.adopt_effects(effects)
+        self._update_convolvers()
+        return left
+
+    def _delivered(self, feeder: str, t: float, s: FeederSample) -> float:
+        """The delivered flow under the adopted feeder-stage effects (causal: the effect's
+        ``apply_flow`` on the feeder's recent reported flows, last value)."""
+        effs = [e for e in self.effects if e.stage == "feeder" and e.target in (None, feeder)]
+        h = self._hist.get(feeder)
+        if h is None:
+            h = self._hist[feeder] = FlowMemory(self.FLOW_MEMORY)
+        h.append(t, s.flow_kg_h, s.refilling)
+        if not effs:
+            return s.flow_kg_h
+        tt, qq, rr = h.window()
+        qq = qq.copy()  # an effect may work in place: the memory keeps the reported flows
+        for e in sorted(effs, key=lambda e: e.order):
+            qq = e.apply_flow(tt, qq, rr)
+        return float(qq[-1])
+
+    def add_pulse(self, component: str, t_s: float, mass_kg: float, duration_s: float) -> bool:
+        """A tracer pulse entering the inlet; its flow in ticks already predicted corrects
+        their convolution input (see the module docstring). Returns False for a pulse already
+        announced (history after a restart)."""
+        if component not in self.comp_names:
+            raise ValueError(f"component must be one of {self.comp_names}, got {component!r}")
+        late = self.inlet.add_pulse(TracerPulse(t_s, mass_kg, component, duration_s), carry=False)
+        if late is None:
+            return False
+        if late and self.conv is not None and self._last_tick is not None:
+            conv = self.conv[component]
+            for t, q in late.items():
+                lag = int(round((self._last_tick - t) / self.spec.dt_s))
+                if lag < conv.size:  # older inputs no longer reach any future outlet value
+                    conv.amend(lag, q)
+        return True
+
+    def add_event(self, event: Mapping) -> bool:
+        """A plant event (dict form, ``twin_core.online.inlet.event_record``); returns whether
+        it announced a new tracer pulse of a known component (then added to the inlet)."""
+        p = tracer_pulse(event)
+        if p is None or p.component not in self.comp_names:
+            return False
+        return self.add_pulse(p.component, p.t_s, p.mass_kg, p.duration_s)
+
+    def push(
+        self, feeder: str, t: float, flow_kg_h: float, refilling: bool = False
+    ) -> list[tuple[float, dict[str, float]]]:
+        """One feeder sample -> the (t, {component: % w/w}) of every tick it completed."""
+        out = []
+        for tick in self.inlet.push(feeder, t, FeederSample(float(flow_kg_h), bool(refilling))):
+            conc = self._predict(tick)
+            if conc is not None:
+                out.append((tick.t, conc))
+        return out
+
+    def _predict(self, tick: InletTick) -> dict[str, float] | None:
+        mass = {c: 0.0 for c in self.comp_names}
+        for f, s in tick.feeders.items():
+            mass[self.components[f]] += self._delivered(f, tick.t, s)
+        steady = dict(mass)
+        for c, q in tick.tracer_kg_h.items():
+            mass[c] += q
+        if self.conv is None:
+            self.conv = {
+                c: StreamingConvolver(self.kernel.e, self.spec.dt_s, initial=steady[c])
+                for c in self.comp_names
+            }
+        self._last_tick = tick.t
+        y = {c: self.conv[c].push(mass[c]) for c in self.comp_names}
+        total = sum(y.values())
+        if total > 0:
+            return {c: 100.0 * v / total for c, v in y.items()}
+        return None

@@ -1,0 +1,283 @@
+"""Stream logic of the OOS diverter (the oos service's core, no bus): feeder flows, tracer
+events, measured and predicted outlet concentration in; alerts and divert commands out.
+
+One :class:`~twin_core.online.diverter.OosDecider` per specified component gets three streams
+merged by plant time (:class:`~twin_core.online.merge.WatermarkMerger`), so the decisions do not
+depend on the order the streams arrive in:
+
+- **inlet**: the linearised inlet composition of each component,
+  ``x = c0 + 100 (m_i - c0/100 m_tot) / m_nom`` (c0 the target, m_nom the sum of the set
+  points), from the aligned feeder flows plus the mass of announced tracer pulses
+  (:class:`~twin_core.online.inlet.InletStream`): the first-order perturbation of the
+  mass-flow-weighted outlet is exactly the convolution of ``x - c0`` with E(t), so the funnel
+  (``twin_core.quality.funnel.funnel_gain``) applies to flow pulses (tracer) as well as to
+  composition changes;
+- **measured** (NIR) and **predicted** (blender) outlet concentrations.
+
+E(t) is the blender's (:class:`~twin_core.online.blender.BlenderKernel`): the declared model,
+or what the twin adopted (:meth:`OosCore.adopt_estimate`, :meth:`OosCore.adopt_effects`), so the
+diverter follows the model the blender adopted; funnel gain and lot boundaries
+(``twin_core.quality.lots.diversion_window`` with the configured quantiles) are rebuilt from it.
+
+An outlet decision at t depends on the inlet only up to t - t(F = lot_lower), so an inlet tick
+can wait that long (less one tick) before it enters the merge at no cost in decision latency: a
+tracer event may arrive up to ``inlet_hold_s`` of plant time after the flows of its tick and
+still count in its own tick. The hold comes from the declared E(t).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from schemas.line import LineSpec
+from twin_core.online.blender import BlenderKernel
+from twin_core.online.diverter import DiverterOutput, OosDecider
+from twin_core.online.inlet import FeederSample, InletStream, InletTick, tracer_pulse
+from twin_core.online.merge import WatermarkMerger
+from twin_core.plant.effects import Effect
+from twin_core.quality.funnel import funnel_gain
+from twin_core.quality.lots import diversion_window
+
+__all__ = ["INLET_LEAD_TICKS", "OosCore"]
+
+#: the inlet stream enters the event-time merge at least this many ticks ahead of its plant time
+INLET_LEAD_TICKS = 2
+
+
+def traceability(
+    e: np.ndarray, dt: float, lower: float, upper: float
+) -> Callable[[float, float], tuple[float, float]]:
+    """RTD traceability of an inlet window to the outlet (lot boundaries, seed ch. 6):
+    ``(t_in_start, t_in_end) -> (t_in_start + t(F = lower), t_in_end + t(F = upper))``."""
+    tk = np.arange(e.size) * dt
+
+    def window(a: float, b: float) -> tuple[float, float]:
+        return diversion_window(a, b, tk, e, lower, upper)
+
+    return window
+
+
+class OosCore:
+    """Stream logic of the diverter without the bus: feed messages, get outputs.
+
+    Args:
+        spec: the line (specification, OOS settings, tick, services).
+        e: an E(t) on the tick grid to use instead of the declared blender model.
+        clock: wall clock (s) for the inlet's ``inlet_grace_s``.
+    """
+
+    def __init__(
+        self,
+        spec: LineSpec,
+        e: np.ndarray | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.spec = spec
+        dt = spec.dt_s
+        self.kernel = BlenderKernel(spec, e)
+        o = spec.oos
+        gain, window = self._funnel()
+        self.deciders: dict[str, OosDecider] = {
+            s.component: OosDecider(
+                line=spec.name,
+                component=s.component,
+                target=s.target_pct_w_w,
+                lower=s.lower_pct_w_w,
+                upper=s.upper_pct_w_w,
+                dt=dt,
+                gain=gain,
+                window=window,
+                n_on=o.n_on,
+                n_off=o.n_off,
+                hysteresis=o.hysteresis_pct_w_w,
+                inlet_detect=o.inlet_detect_pct_w_w,
+                inlet_n_on=o.inlet_n_on,
+                inlet_n_off=o.inlet_n_off,
+            )
+            for s in spec.spec
+        }
+        self.use_predicted = "blender" in spec.services
+        streams = ["inlet", "measured"] + (["predicted"] if self.use_predicted else [])
+        self.merger = WatermarkMerger(streams)
+        self.m_nom = sum(f.setpoint_kg_h for f in spec.feeders)
+        self.end_t: float | None = None
+        self.finished = False
+        #: wall time of the last release of the merge (None before anything was pending)
+        self.last_release: float | None = None
+        self.clock = clock
+        e0 = self.kernel.e
+        f = np.cumsum(e0) * dt
+        t_lo = float(np.argmax(f >= o.lot_lower)) * dt if f[-1] >= o.lot_lower else 0.0
+        lead_ticks = max(INLET_LEAD_TICKS, int(math.floor(t_lo / dt + 1e-9)) - 1)
+        self.inlet_lead_s = lead_ticks * dt
+        self.inlet = InletStream(
+            spec.components,
+            dt,
+            max_lag=max(1, int(spec.inlet_max_lag_s / dt)),
+            hold_s=(lead_ticks - 1) * dt,
+            clock=clock,
+        )
+        self._last: dict[tuple[str, str], float] = {}
+        self.duplicates = 0
+
+    # -- the model ---------------------------------------------------------------------------
+    def _funnel(self) -> tuple[np.ndarray | None, Callable[[float, float], tuple[float, float]]]:
+        """Funnel gain (None when ``oos.use_funnel`` is off) and traceability of the E(t) in use."""
+        o, dt, e = self.spec.oos, self.spec.dt_s, self.kernel.e
+        gain = funnel_gain(e, dt) if o.use_funnel else None
+        return gain, traceability(e, dt, o.lot_lower, o.lot_upper)
+
+    def _refresh_funnel(self) -> None:
+        gain, window = self._funnel()
+        for d in self.deciders.values():
+            d.set_funnel(gain, window)
+
+    def adopt_estimate(self, model: str, params: Mapping[str, float]) -> None:
+        """The blender adopted an RTD estimate: follow it (funnel and lot boundaries)."""
+        self.kernel.adopt_estimate(model, params)
+        self._refresh_funnel()
+
+    def adopt_effects(self, effects: Sequence[Effect | Mapping]) -> list[Effect]:
+        """The blender adopted a finding's effects: follow its E(t); returns the effects that
+        could not be adopted."""
+        left = self.kernel.adopt_effects(effects)
+        self._refresh_funnel()
+        return left
+
+    # -- inputs ------------------------------------------------------------------------------
+    @property
+    def inlet_hold_s(self) -> float:
+        """Plant time an inlet tick waits for late tracer events, s."""
+        return self.inlet.hold_s
+
+    @property
+    def inlet_grace_s(self) -> float:
+        """Wall time an inlet tick also waits after its flows arrived, s (0: plant time only):
+        a sample the bus missed reaches a subscriber one publisher heartbeat later."""
+        return self.inlet.grace_s
+
+    @inlet_grace_s.setter
+    def inlet_grace_s(self, value: float) -> None:
+        self.inlet.grace_s = float(value)
+
+    def _fresh(self, stream: str, sub: str, t: float) -> bool:
+        k = (stream, sub)
+        if t <= self._last.get(k, -1.0):
+            self.duplicates += 1
+            return False
+        self._last[k] = t
+        return True
+
+    def _process(self, released: list[tuple[str, float, Any]]) -> list[DiverterOutput]:
+        out: list[DiverterOutput] = []
+        if released:
+            self.last_release = self.clock()
+        for stream, t, item in released:
+            if stream == "inlet":
+                t_in, xs = item
+                for comp, x in xs.items():
+                    out += self.deciders[comp].inlet(t_in, x)
+            else:
+                comp, c = item
+                d = self.deciders.get(comp)
+                if d is not None:
+                    out += d.measured(t, c) if stream == "measured" else d.predicted(t, c)
+        return out
+
+    def flow(
+        self, feeder: str, t: float, flow_kg_h: float, refilling: bool = False
+    ) -> list[DiverterOutput]:
+        """One feeder flow (kg/h)."""
+        if not self._fresh("flow", feeder, t):
+            return []
+        return self._merge_inlet(
+            self.inlet.push(feeder, t, FeederSample(float(flow_kg_h), bool(refilling)))
+        )
+
+    def release_inlet(self) -> list[DiverterOutput]:
+        """Release the inlet ticks that have waited long enough (:class:`InletStream`)."""
+        return self._merge_inlet(self.inlet.release())
+
+    def _merge_inlet(self, ticks: list[InletTick]) -> list[DiverterOutput]:
+        """Inlet ticks enter the merge ``inlet_lead_s`` ahead of their plant time."""
+        out: list[DiverterOutput] = []
+        for tick in ticks:
+            mass = tick.mass_kg_h(self.spec.components)
+            total = sum(mass.values())
+            x = {
+                c: d.target + 100.0 * (mass.get(c, 0.0) - d.target / 100.0 * total) / self.m_nom
+                for c, d in self.deciders.items()
+            }
+            out += self._process(self.merger.push("inlet", tick.t + self.inlet_lead_s, (tick.t, x)))
+        return out
+
+    def tracer_pulse(self, component: str, t: float, mass_kg: float, duration_s: float) -> bool:
+        """An announced tracer pulse: its mass enters the inlet composition (funnel, tracing).
+        Returns False for a pulse already announced (history after a restart)."""
+        from twin_core.plant.config import TracerPulse
+
+        return self.inlet.add_pulse(TracerPulse(t, mass_kg, component, duration_s)) is not None
+
+    def add_event(self, event: Mapping) -> bool:
+        """A plant event (dict form, ``twin_core.online.inlet.event_record``); returns whether
+        it announced a new tracer pulse of a known component."""
+        p = tracer_pulse(event)
+        if p is None or p.component not in self.spec.components.values():
+            return False
+        return self.tracer_pulse(p.component, p.t_s, p.mass_kg, p.duration_s)
+
+    def measured(self, component: str, t: float, c: float) -> list[DiverterOutput]:
+        """One measured outlet concentration (% w/w)."""
+        if not self._fresh("measured", component, t):
+            return []
+        return self._process(self.merger.push("measured", t, (component, c)))
+
+    def predicted(self, component: str, t: float, c: float) -> list[DiverterOutput]:
+        """One predicted outlet concentration (% w/w); ignored when the line has no blender."""
+        if not self.use_predicted or not self._fresh("predicted", component, t):
+            return []
+        return self._process(self.merger.push("predicted", t, (component, c)))
+
+    # -- end of stream, stalls ---------------------------------------------------------------
+    def announce_end(self, t_end: float) -> list[DiverterOutput]:
+        """The plant's last sample is at ``t_end``: finish once every stream has reached it
+        (the streams through other services arrive later than the event)."""
+        self.end_t = t_end
+        return self.finish_if_complete()
+
+    def finish_if_complete(self) -> list[DiverterOutput]:
+        if self.end_t is None or self.finished:
+            return []
+        slack = max(self.spec.dt_s, self.spec.sensor.sample_period_s)
+        last = dict(self.merger.last)
+        held = self.inlet.newest_held_t
+        if held is not None:
+            last["inlet"] = held + self.inlet_lead_s
+        if all(last.get(s, -math.inf) >= self.end_t - slack for s in self.merger.order):
+            return self.end_of_stream()
+        return []
+
+    @property
+    def pending(self) -> bool:
+        """Whether anything waits in the merge or the inlet hold."""
+        return bool(len(self.merger) or self.inlet.pending)
+
+    def release_all(self) -> list[DiverterOutput]:
+        """Decide on what is there (a stalled stream): the held inlet ticks, then the merge."""
+        out = self._merge_inlet(self.inlet.release_all())
+        return out + self._process(self.merger.release_all())
+
+    def end_of_stream(self) -> list[DiverterOutput]:
+        """Close everything: release what the merge holds and close open episodes."""
+        if self.finished:
+            return []
+        self.finished = True
+        out = self.release_all()
+        for d in self.deciders.values():
+            out += d.flush()
+        return out
