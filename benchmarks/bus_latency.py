@@ -4,7 +4,7 @@ Method: a spawned child process echoes every message it receives; the parent sen
 waits for its echo, and repeats (``N`` round trips after ``WARMUP``). Two paths side by side:
 
 - raw zenoh: 200 random bytes, ``session.put`` / Python callback subscriber (the peer baseline);
-- typed twin bus: an ``Event`` whose JSON is 200 bytes, ``TypedPublisher.publish`` (validate +
+- typed twin bus: an ``Event`` whose JSON is 200 bytes, ``Publisher.publish`` (validate +
   encode) and ``TypedSubscriber`` (decode + validate + time-order check) at both ends.
 
 Prints p50/p90/p99 in microseconds and the typed/raw ratios.
@@ -38,14 +38,14 @@ def typed_event(seq: int):
 def echo_child(port: int, mode: str, ready, stop) -> None:
     from schemas.bus_config import BusConfig
     from schemas.messages import Event
-    from services.bus import Counters, TypedPublisher, TypedSubscriber, open_session
+    from services.bus import Counters, Publisher, TypedSubscriber, open_session
 
     with open_session(BusConfig.loopback(port, listen=False)) as s:
         if mode == "raw":
             pub = s.declare_publisher("bench/pong")
             s.declare_subscriber("bench/ping", lambda sample: pub.put(sample.payload))
         else:
-            pub = TypedPublisher(s, "twin/bench/x/pong/event", Event, counters=Counters())
+            pub = Publisher(s, "twin/bench/x/pong/event", Event, counters=Counters())
             TypedSubscriber(s, "twin/bench/x/ping/event", lambda k, m: pub.publish(m), model=Event)
         ready.set()
         stop.wait(120)
@@ -56,7 +56,7 @@ def measure(mode: str, n: int) -> np.ndarray:
 
     from schemas.bus_config import BusConfig
     from schemas.messages import Event
-    from services.bus import Counters, TypedPublisher, TypedSubscriber, open_session
+    from services.bus import Counters, Publisher, TypedSubscriber, open_session
 
     port = free_port()
     ctx = mp.get_context("spawn")
@@ -78,7 +78,7 @@ def measure(mode: str, n: int) -> np.ndarray:
                 def send(i: int) -> None:
                     pub.put(payload)
             else:
-                tpub = TypedPublisher(s, "twin/bench/x/ping/event", Event, counters=Counters())
+                tpub = Publisher(s, "twin/bench/x/ping/event", Event, counters=Counters())
                 TypedSubscriber(s, "twin/bench/x/pong/event", lambda k, m: got.set(), model=Event)
 
                 def send(i: int) -> None:

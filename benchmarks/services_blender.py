@@ -26,11 +26,11 @@ import zenoh
 from schemas import keys
 from schemas.line import LineSpec
 from schemas.messages import FeederFlow, PredictedConcentration
-from services.blender import BlenderPredictor
 from services.bus import open_session
-from services.common import LiveService
+from services.service import Service
 from services.supervisor import Supervisor
 from twin_core.online import StreamingConvolver
+from twin_core.online.blender import BlenderPredictor
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
 
@@ -133,9 +133,9 @@ def over_bus(spec: LineSpec, n: int) -> None:
             keys.predicted_concentration(spec.name, "outlet"),
             zenoh.handlers.Callback(cb, lambda: None),
         )
-        plant = LiveService("plant", spec, install_signal_handlers=False).open()
+        plant = Service("plant", spec=spec, install_signal_handlers=False).open()
         pubs = {
-            f.id: plant.history_publisher(keys.feeder_flow(spec.name, f.id), FeederFlow)
+            f.id: plant.publisher(keys.feeder_flow(spec.name, f.id), FeederFlow, history=True)
             for f in spec.feeders
         }
         msgs = [

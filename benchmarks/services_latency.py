@@ -27,7 +27,7 @@ from schemas import keys
 from schemas.line import LineSpec
 from schemas.messages import DivertCommand, FeederFlow, MeasuredConcentration, OosAlert
 from services.bus import open_session
-from services.common import LiveService
+from services.service import Service
 from services.supervisor import Supervisor
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
@@ -79,13 +79,13 @@ def main() -> int:
             s.declare_subscriber(keys.oos_alert(spec.name), on(OosAlert)),
             s.declare_subscriber(keys.divert_command(spec.name), on(DivertCommand)),
         ]
-        plant = LiveService("plant", spec, install_signal_handlers=False).open()
+        plant = Service("plant", spec=spec, install_signal_handlers=False).open()
         flow_pubs = {
-            f.id: plant.history_publisher(keys.feeder_flow(spec.name, f.id), FeederFlow)
+            f.id: plant.publisher(keys.feeder_flow(spec.name, f.id), FeederFlow, history=True)
             for f in spec.feeders
         }
-        nir = plant.history_publisher(
-            keys.measured_concentration(spec.name, "nir1"), MeasuredConcentration
+        nir = plant.publisher(
+            keys.measured_concentration(spec.name, "nir1"), MeasuredConcentration, history=True
         )
         time.sleep(1.5)
         sent: dict[float, float] = {}

@@ -1,35 +1,33 @@
-"""The twin's bus: zenoh sessions from :class:`schemas.bus_config.BusConfig`, typed publish and
-subscribe, and the :class:`Service` helper every service process builds on.
+"""The twin's bus: zenoh sessions from :class:`schemas.bus_config.BusConfig`, the one publisher
+class, typed and history-fetching subscribers, pings and the drain barrier.
 
-Typed publishing validates (a message must be an instance of the key's model; a dict is validated
-into one) and uses ``CongestionControl.BLOCK`` so that data is never dropped silently. A typed
-subscriber never raises on bad input: bad JSON, a schema violation and time going backwards
-(per key expression, i.e. per publisher) are logged with their reason, counted
-(``rejected_json``, ``rejected_schema``, ``rejected_time``, ``rejected_unknown``) and skipped; the
-counters are published in the service's health.
+:class:`Publisher` validates (a message must be an instance of the key's model; a dict is
+validated into one) or sends pre-encoded payloads (replay), with ``CongestionControl.BLOCK`` so
+that data is never dropped silently, and optionally keeps a history cache for late or restarted
+subscribers. A subscriber never raises on bad input: bad JSON, a schema violation and time going
+backwards (per key expression, i.e. per publisher) are logged with their reason, counted
+(``rejected_json``, ``rejected_schema``, ``rejected_time``, ``rejected_unknown``) and skipped;
+the counters are published in the service's health (``services.service.Service``).
+
+Delivery guarantees of the history. Publishers with a history are zenoh *advanced* publishers
+with a sample cache; :class:`HistoryFeed` subscribers are advanced subscribers (live samples,
+recovery of missed ones) that query every matching publisher's cache themselves when they
+(re)start and deliver each payload once. Why not zenoh-ext's own ``HistoryConfig``: with
+eclipse-zenoh 1.10.2 an advanced subscriber on a wildcard key that joins while several advanced
+publishers are live receives the history of only some of them (measured: in 10 of 10 joins, 3-4
+of 5 publishers delivered live samples only), although a plain query of their caches returns
+every sample (``tests/test_history_feed.py``).
 
 Topology. Two processes on one host: one listens, the other connects (peer to peer). More
 processes: one session in ``router`` mode (``twin router``) listens and the others connect to it
 as ``client`` (zenoh 1.x peers with gossip off do not forward between the peers connected to
 them; clients of a router or of a peer are routed).
-
-Minimal service::
-
-    from schemas import keys
-    from schemas.messages import FeederFlow, MeasuredConcentration
-    from services.bus import Service
-
-    with Service("doubler", BusConfig.loopback(7447, listen=False)) as svc:
-        pub = svc.publisher(keys.key("line1", "x", "out", id="y"), MeasuredConcentration)
-        svc.subscribe("twin/line1/feeder/*/flow", lambda key, msg: ..., model=FeederFlow)
-        svc.run()  # until SIGINT/SIGTERM or svc.stop()
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import os
 import signal
 import socket
 import threading
@@ -39,6 +37,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import zenoh
+import zenoh.ext as zext
 from pydantic import ValidationError
 
 from schemas import keys as keys_mod
@@ -98,43 +97,66 @@ class Counters:
         return sum(snap.get(r, 0) for r in REJECT_REASONS)
 
 
-class TypedPublisher:
-    """Publishes validated messages of one model on one key expression.
+class Publisher:
+    """Publishes on one key: validated messages of one model, or pre-encoded JSON payloads.
 
     ``publish(msg)`` takes a model instance or a dict of its fields (``seq`` is filled in from
-    the publisher's counter when missing) and returns the message sent. A message whose ``t`` is
-    earlier than the previous one raises ValueError (subscribers would reject it), unless
-    ``check_time=False``.
+    the publisher's counter when missing) and returns the message sent; with ``check_time`` a
+    message whose ``t`` is earlier than the previous one raises ValueError (subscribers would
+    reject it). ``put_raw(payload)`` sends bytes as they are (replay of recorded bytes).
+
+    With ``history`` (a number of samples) it is a zenoh advanced publisher keeping that many
+    samples per key for late or restarted subscribers (:class:`HistoryFeed`), with publisher
+    detection and sample-miss heartbeats; otherwise a plain publisher, whose matching
+    subscribers :meth:`has_subscribers` reports.
     """
 
     def __init__(
         self,
         session: zenoh.Session,
         key: str,
-        model: type[Message],
+        model: type[Message] | None = None,
         *,
         counters: Counters | None = None,
-        congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.BLOCK,
+        history: int | None = None,
         express: bool = False,
         check_time: bool = True,
+        congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.BLOCK,
     ) -> None:
-        keys_mod.parse_key(key)
+        if model is not None:
+            keys_mod.parse_key(key)
         self.key = key
         self.model = model
         self.counters = counters or Counters()
         self.check_time = check_time
         self.last_t: float | None = None
         self.seq = 0
-        self._pub = session.declare_publisher(
-            key, encoding=JSON, congestion_control=congestion_control, express=express
-        )
+        self.history = history
+        if history is None:
+            self._pub = session.declare_publisher(
+                key, encoding=JSON, congestion_control=congestion_control, express=express
+            )
+        else:
+            self._pub = zext.declare_advanced_publisher(
+                session,
+                key,
+                encoding=JSON,
+                congestion_control=congestion_control,
+                cache=zext.CacheConfig(max_samples=history),
+                sample_miss_detection=zext.MissDetectionConfig(heartbeat=0.5),
+                publisher_detection=True,
+                express=express,
+            )
 
     def publish(self, msg: Message | dict[str, Any]) -> Message:
+        """Validate (dicts) and send; ``seq`` defaults to the publisher's counter."""
         if isinstance(msg, dict):
+            if self.model is None:
+                raise TypeError(f"publisher {self.key} has no model: pass a Message")
             data = dict(msg)
             data.setdefault("seq", self.seq)
             msg = self.model.model_validate(data)
-        elif not isinstance(msg, self.model):
+        elif self.model is not None and not isinstance(msg, self.model):
             raise TypeError(
                 f"message for {self.key} must be a {self.model.__name__}, got {type(msg).__name__}"
             )
@@ -148,34 +170,15 @@ class TypedPublisher:
         self.counters.inc("published")
         return msg
 
-    def has_subscribers(self) -> bool:
-        """Whether a matching subscriber is known (zenoh matching status)."""
-        return bool(self._pub.matching_status.matching)
-
-    def undeclare(self) -> None:
-        self._pub.undeclare()
-
-
-class RawPublisher:
-    """Publishes pre-encoded JSON payloads on one key (replay: bytes sent as recorded)."""
-
-    def __init__(
-        self,
-        session: zenoh.Session,
-        key: str,
-        *,
-        congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.BLOCK,
-    ) -> None:
-        self.key = key
-        self._pub = session.declare_publisher(
-            key, encoding=JSON, congestion_control=congestion_control
-        )
-
-    def put(self, payload: bytes) -> None:
+    def put_raw(self, payload: bytes) -> None:
+        """Send a pre-encoded JSON payload (replay of recorded bytes)."""
         self._pub.put(payload)
+        self.counters.inc("published")
 
     def has_subscribers(self) -> bool:
-        """Whether a matching subscriber is known (zenoh matching status)."""
+        """Whether a matching subscriber is known (zenoh matching status; plain publishers)."""
+        if self.history is not None:
+            raise TypeError(f"publisher {self.key} keeps a history: no matching status")
         return bool(self._pub.matching_status.matching)
 
     def undeclare(self) -> None:
@@ -327,10 +330,120 @@ class TypedSubscriber:
         self._sub.undeclare()
 
 
+class HistoryFeed:
+    """Live samples on ``key_expr`` plus the cached history of every matching advanced publisher,
+    each payload delivered once to ``sink(key, payload)``.
+
+    The live side is an advanced subscriber (sample-miss recovery on the publishers' heartbeat);
+    the history side is one query of the publishers' caches (all queryables, no consolidation,
+    replies on the samples' own keys). A payload seen on both sides (published while the
+    query ran) is delivered once: payloads are remembered until ``dedup_s`` after the query has
+    completed, then forgotten (bounded memory on long runs). History and live samples may
+    interleave, so consumers that care order by plant time (the services' catch-up does).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        sink: Callable[[str, bytes], None],
+        *,
+        timeout_s: float = 10.0,
+        dedup_s: float = 5.0,
+    ) -> None:
+        self._sink = sink
+        self._lock = threading.Lock()
+        self._seen: set[tuple[str, bytes]] | None = set()
+        self._done_at: float | None = None
+        self.dedup_s = dedup_s
+        self.history_complete = threading.Event()
+        self.n_history = 0
+        self.n_duplicates = 0
+        self._sub = zext.declare_advanced_subscriber(
+            session,
+            key_expr,
+            zenoh.handlers.Callback(self._on_live, lambda: None),
+            recovery=zext.RecoveryConfig(heartbeat=True),
+            subscriber_detection=True,
+        )
+        session.get(
+            keys_mod.advanced_caches(key_expr),
+            zenoh.handlers.Callback(self._on_reply, self._on_history_done),
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            accept_replies=zenoh.ReplyKeyExpr.ANY,
+            timeout=timeout_s,
+        )
+
+    def _on_live(self, sample: zenoh.Sample) -> None:
+        self._deliver(str(sample.key_expr), sample.payload.to_bytes(), history=False)
+
+    def _on_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            s = reply.ok
+            self._deliver(str(s.key_expr), s.payload.to_bytes(), history=True)
+
+    def _on_history_done(self) -> None:
+        with self._lock:
+            self._done_at = time.monotonic()
+        self.history_complete.set()
+
+    def _deliver(self, key: str, payload: bytes, *, history: bool) -> None:
+        with self._lock:
+            if self._seen is not None:
+                if (key, payload) in self._seen:
+                    self.n_duplicates += 1
+                    return
+                self._seen.add((key, payload))
+                if self._done_at is not None and time.monotonic() - self._done_at > self.dedup_s:
+                    self._seen = None
+            if history:
+                self.n_history += 1
+        self._sink(key, payload)
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+
+
+class HistorySubscriber:
+    """Validating :class:`HistoryFeed` of one key expression: valid messages to
+    ``sink(key, msg)`` (counted ``received``), the others counted and skipped."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        sink: Callable[[str, Any], None],
+        *,
+        counters: Counters,
+        model: type[Message] | None = None,
+        name: str = "subscriber",
+        key_counts: Counters | None = None,
+    ) -> None:
+        # time order is restored by the service's catch-up sort and per-stream de-duplication:
+        # history may arrive after the first live samples
+        self.validator = MessageValidator(counters, model=model, name=name, check_time=False)
+        self.counters = counters
+        self.key_counts = key_counts if key_counts is not None else Counters()
+        self._sink = sink
+        self.feed = HistoryFeed(session, key_expr, self._on_payload)
+
+    def _on_payload(self, key: str, payload: bytes) -> None:
+        self.key_counts.inc(key)
+        msg = self.validator.check(key, payload)
+        if msg is None:
+            return
+        self.counters.inc("received")
+        self._sink(key, msg)
+
+    def undeclare(self) -> None:
+        self.feed.undeclare()
+
+
 def live_services(session: zenoh.Session, line: str = "*", timeout_s: float = 1.0) -> list[str]:
     """Names of the services whose liveliness token is alive (``twin/<line>/service/<name>/alive``)."""
     names = []
-    for reply in session.liveliness().get(f"twin/{line}/service/*/alive", timeout=timeout_s):
+    for reply in session.liveliness().get(keys_mod.services_alive(line), timeout=timeout_s):
         if reply.ok is not None:
             names.append(keys_mod.parse_key(str(reply.ok.key_expr)).id)
     return sorted(set(names))
@@ -345,10 +458,10 @@ class PingReply:
 
 
 def ping(session: zenoh.Session, line: str = "*", timeout_s: float = 2.0) -> dict[str, PingReply]:
-    """Ask every :class:`Service` (``twin/<line>/service/*/ping``) for its health and per-key
+    """Ask every service (``twin/<line>/service/*/ping``) for its health and per-key
     sample counts; returns replies by service name."""
     replies = session.get(
-        f"twin/{line}/service/*/ping",
+        keys_mod.services_ping(line),
         target=zenoh.QueryTarget.ALL,
         consolidation=zenoh.ConsolidationMode.NONE,
         congestion_control=zenoh.CongestionControl.BLOCK,
@@ -379,7 +492,7 @@ def barrier(
     baseline: dict[str, PingReply] | None = None,
     quiet_s: float = 0.1,
 ) -> list[ServiceHealth]:
-    """Wait until every :class:`Service` on the bus has processed what this session sent.
+    """Wait until every service on the bus has processed what this session sent.
 
     A closing zenoh session drops what is still queued, so a burst must be drained first.
     The services are pinged repeatedly (``quiet_s`` apart); the barrier returns when two
@@ -447,223 +560,3 @@ class StopFlag:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous.clear()
-
-
-class Service:
-    """Base/helper of a twin service process.
-
-    Opens the session, declares a liveliness token ``twin/<line>/service/<name>/alive``,
-    publishes :class:`ServiceHealth` every ``health_period_s`` on
-    ``twin/<line>/service/<name>/health`` (counters of all its publishers and subscribers),
-    and shuts down cleanly on SIGINT/SIGTERM or :meth:`stop` (health ``stopping``, token
-    undeclared, session closed). Use as a context manager; :meth:`run` blocks until stopped.
-    Subclasses may override :meth:`step` (called every ``step_period_s`` by :meth:`run`).
-    """
-
-    step_period_s: float = 0.1
-
-    def __init__(
-        self,
-        name: str,
-        config: BusConfig | None = None,
-        *,
-        health_period_s: float = 1.0,
-        install_signal_handlers: bool = True,
-    ) -> None:
-        self.name = name
-        self.config = config or BusConfig()
-        self.line = self.config.line
-        self.health_period_s = health_period_s
-        self.counters = Counters()
-        #: samples received per key (valid or not), reported to pings (see :func:`barrier`)
-        self.key_counts = Counters()
-        self.stop_flag = StopFlag(install=install_signal_handlers)
-        self.session: zenoh.Session | None = None
-        self.plant_time_s = 0.0
-        self.state = "starting"
-        self._t0 = time.monotonic()
-        self._token: zenoh.LivelinessToken | None = None
-        self._ping: zenoh.Queryable | None = None
-        self._health_pub: TypedPublisher | None = None
-        self._health_thread: threading.Thread | None = None
-        self._entities: list[Any] = []
-        self._closed = False
-
-    # -- lifecycle -------------------------------------------------------------------------
-    def open(self) -> Service:
-        self.session = open_session(self.config)
-        try:
-            self._token = self.session.liveliness().declare_token(
-                keys_mod.service_alive(self.line, self.name)
-            )
-            self._ping = self.session.declare_queryable(
-                keys_mod.key(self.line, "service", "ping", self.name), self._on_ping
-            )
-            self._health_pub = TypedPublisher(
-                self.session,
-                keys_mod.service_health(self.line, self.name),
-                ServiceHealth,
-                counters=Counters(),
-            )
-            self.state = "running"
-            self.publish_health()
-            if self.health_period_s > 0:
-                self._health_thread = threading.Thread(
-                    target=self._health_loop, name=f"{self.name}-health", daemon=True
-                )
-                self._health_thread.start()
-        except BaseException:
-            self.session.close()
-            raise
-        return self
-
-    def __enter__(self) -> Service:
-        return self.open()
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
-    def stop(self) -> None:
-        """Ask :meth:`run` to return (thread-safe; also what SIGINT/SIGTERM do)."""
-        self.stop_flag.set()
-
-    @property
-    def stopping(self) -> bool:
-        return self.stop_flag.is_set()
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        self.stop_flag.set()
-        self.state = "stopping"
-        try:
-            if self._health_thread is not None:
-                self._health_thread.join(timeout=2.0)
-            if self.session is not None and not self.session.is_closed():
-                try:
-                    self.publish_health()
-                except Exception as exc:  # noqa: BLE001 - best effort at shutdown
-                    log.debug("final health not sent: %s", exc)
-                for entity in reversed(self._entities):
-                    try:
-                        entity.undeclare()
-                    except Exception as exc:  # noqa: BLE001
-                        log.debug("undeclare failed: %s", exc)
-                if self._ping is not None:
-                    self._ping.undeclare()
-                if self._token is not None:
-                    self._token.undeclare()
-        finally:
-            if self.session is not None:
-                self.session.close()
-            self.stop_flag.restore()
-
-    def run(self, timeout_s: float | None = None) -> int:
-        """Call :meth:`step` periodically until stopped (signal, :meth:`stop`, or timeout)."""
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        while not self.stop_flag.wait(self.step_period_s):
-            self.step()
-            if deadline is not None and time.monotonic() >= deadline:
-                break
-        return 0
-
-    def step(self) -> None:
-        """Periodic work of a subclass (default: nothing)."""
-
-    # -- pub/sub ---------------------------------------------------------------------------
-    def _require_session(self) -> zenoh.Session:
-        if self.session is None:
-            raise RuntimeError(f"service {self.name!r} is not open")
-        return self.session
-
-    def publisher(self, key: str, model: type[Message], **kwargs: Any) -> TypedPublisher:
-        pub = TypedPublisher(self._require_session(), key, model, counters=self.counters, **kwargs)
-        self._entities.append(pub)
-        return pub
-
-    def raw_publisher(self, key: str) -> RawPublisher:
-        pub = RawPublisher(self._require_session(), key)
-        self._entities.append(pub)
-        return pub
-
-    def subscribe(
-        self,
-        key_expr: str,
-        callback: Callback,
-        *,
-        model: type[Message] | None = None,
-        check_time: bool = True,
-        allow_unknown: bool = False,
-        with_payload: bool = False,
-    ) -> TypedSubscriber:
-        """Typed subscription; see :class:`TypedSubscriber`. Time order is checked per key.
-
-        The callback also advances :attr:`plant_time_s` (reported in health)."""
-
-        def wrapped(key: str, msg: Any, *payload: bytes) -> None:
-            t = getattr(msg, "t", None)
-            if t is not None and t > self.plant_time_s:
-                self.plant_time_s = t
-            callback(key, msg, *payload)
-
-        sub = TypedSubscriber(
-            self._require_session(),
-            key_expr,
-            wrapped,
-            model=model,
-            counters=self.counters,
-            check_time=check_time,
-            allow_unknown=allow_unknown,
-            name=self.name,
-            with_payload=with_payload,
-            key_counts=self.key_counts,
-        )
-        self._entities.append(sub)
-        return sub
-
-    # -- health ----------------------------------------------------------------------------
-    def health(self) -> ServiceHealth:
-        assert self._health_pub is not None
-        state = self.state
-        return ServiceHealth(
-            t=self.plant_time_s,
-            seq=self._health_pub.seq,
-            service=self.name,
-            state=state,
-            pid=os.getpid(),
-            uptime_s=time.monotonic() - self._t0,
-            wall_time_unix_s=time.time(),
-            counters=self.counters.snapshot(),
-            last_error=self.counters.last_error,
-        )
-
-    def drain(self, timeout_s: float = 10.0, **kwargs: Any) -> list[ServiceHealth]:
-        """Wait until every service on the bus processed what this one sent (see
-        :func:`barrier`); call before closing after a burst of publications."""
-        return barrier(self._require_session(), timeout_s=timeout_s, **kwargs)
-
-    def _on_ping(self, query: zenoh.Query) -> None:
-        try:
-            payload = {
-                "health": self.health().model_dump(mode="json"),
-                "key_counts": self.key_counts.snapshot(),
-            }
-            query.reply(
-                keys_mod.key(self.line, "service", "ping", self.name),
-                json.dumps(payload).encode(),
-                encoding=JSON,
-            )
-        except Exception as exc:  # noqa: BLE001 - a ping must not kill the receive path
-            log.warning("ping reply failed: %s", exc)
-
-    def publish_health(self) -> ServiceHealth:
-        assert self._health_pub is not None
-        return self._health_pub.publish(self.health())
-
-    def _health_loop(self) -> None:
-        while not self.stop_flag.wait(self.health_period_s):
-            try:
-                self.publish_health()
-            except Exception as exc:  # noqa: BLE001 - health must not kill the service
-                log.warning("health publish failed: %s", exc)

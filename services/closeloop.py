@@ -1,9 +1,10 @@
 """Closeloop service: checks the twin's model against the plant while the line runs.
 
-Thin shell over :class:`twin_core.closeloop.online.OnlineCloseLoop`: subscribes the feeder flows
-(``twin/<line>/feeder/*/flow``, with refill flags), the NIR readings
+Shell over :class:`twin_core.closeloop.online.OnlineCloseLoop` (fed the decoded messages:
+``twin_core.closeloop.record.LineRecord``): subscribes the feeder flows
+(``twin/<line>/feeder/*/flow``, with their refill flags), the NIR readings
 (``twin/<line>/pat/<sensor>/concentration``) and the plant events (tracer pulses with their
-mass, refills); every ``closeloop.interval_s`` of plant time it checks the declared model plus
+mass, disturbances); every ``closeloop.interval_s`` of plant time it checks the declared model plus
 the effects adopted so far on the last ``closeloop.window_s`` (residual -> candidate effects ->
 held-out test, ``twin_core.closeloop``) and publishes a :class:`~schemas.closeloop.ModelFinding`
 on ``twin/<line>/closeloop/finding``: status, the effects claimed with their uncertainties, the
@@ -26,7 +27,8 @@ from schemas import keys
 from schemas.closeloop import EffectFound, EffectSpec, Errors, ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import Event, FeederFlow, MeasuredConcentration
-from services.common import LiveService, OutputLog
+from services.common import OutputLog
+from services.service import Service
 from twin_core.closeloop.online import OnlineCloseLoop, WindowData
 from twin_core.closeloop.report import Finding
 
@@ -53,11 +55,11 @@ def to_message(f: Finding, line: str, seq: int) -> ModelFinding:
     )
 
 
-class CloseLoopService(LiveService):
+class CloseLoopService(Service):
     """See the module docstring."""
 
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
-        super().__init__("closeloop", spec, **kwargs)
+        super().__init__("closeloop", spec=spec, **kwargs)
         c = spec.closeloop
         self.core = OnlineCloseLoop(
             spec.plant_config(),
@@ -75,45 +77,25 @@ class CloseLoopService(LiveService):
 
     def setup(self) -> None:
         line = self.spec.name
-        self.pub = self.history_publisher(keys.model_finding(line), ModelFinding)
-        self.history_subscribe(f"twin/{line}/feeder/*/flow", FeederFlow)
+        self.pub = self.publisher(keys.model_finding(line), ModelFinding, history=True)
+        self.history_subscribe(keys.feeder_flows(line), FeederFlow)
         self.history_subscribe(
             keys.measured_concentration(line, self.spec.sensor.id), MeasuredConcentration
         )
-        self.history_subscribe(f"twin/{line}/*/*/event", Event)
+        self.history_subscribe(keys.events(line), Event)
         self._worker = threading.Thread(target=self._work, name="closeloop-worker", daemon=True)
         self._worker.start()
 
+    #: health counter of each kind of input the record did not take
+    IGNORED = {"unknown_feeder": "rejected_unknown", "ignored": "ignored_measurements"}
+
     def handle(self, key: str, msg: Any) -> None:
-        core = self.core
-        if isinstance(msg, FeederFlow):
-            feeder = keys.parse_key(key).id
-            if feeder not in core.components:
-                self.counters.inc("rejected_unknown")
-                return
-            core.add_flow(feeder, msg.t, msg.mass_flow_kg_h, msg.refilling, msg.screw_speed_rpm)
-        elif isinstance(msg, MeasuredConcentration):
-            if msg.quality == "bad" or msg.component != self.spec.sensor.component:
-                self.counters.inc("ignored_measurements")
-                return
-            core.add_measured(msg.t, msg.concentration_pct_w_w)
-        elif isinstance(msg, Event):
-            core.add_event(
-                {
-                    "t_s": msg.t,
-                    "kind": msg.kind,
-                    "source": msg.source,
-                    "component": msg.component,
-                    "mass_kg": msg.mass_kg,
-                    "duration_s": msg.duration_s,
-                    "detail": msg.detail,
-                }
-            )
-            return
-        else:
-            return
-        for w in core.due():
-            self._jobs.put(core.snapshot(w))
+        kind = self.core.add_message(key, msg)
+        if kind in self.IGNORED:
+            self.counters.inc(self.IGNORED[kind])
+        if kind in ("flow", "measured"):
+            for w in self.core.due():
+                self._jobs.put(self.core.snapshot(w))
 
     def _work(self) -> None:
         while True:

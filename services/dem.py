@@ -38,24 +38,25 @@ from pydantic import ValidationError
 from schemas import keys
 from schemas.line import LineSpec
 from schemas.messages import DemJobProgress, DemJobRequest, DemJobResult
-from services.common import HistoryPublisher, LiveService
+from services.bus import Publisher
+from services.service import Service
 
 log = logging.getLogger(__name__)
 
 
-class DemService(LiveService):
+class DemService(Service):
     """See the module docstring."""
 
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
-        super().__init__("dem", spec, **kwargs)
+        super().__init__("dem", spec=spec, **kwargs)
         self.jobs: queue.SimpleQueue[DemJobRequest | None] = queue.SimpleQueue()
         self.known: set[str] = set()
         self._lock = threading.Lock()
-        self._pubs: dict[str, HistoryPublisher] = {}
+        self._pubs: dict[str, Publisher] = {}
         self._worker: threading.Thread | None = None
 
     def setup(self) -> None:
-        key = f"twin/{self.spec.name}/dem/*/request"
+        key = keys.dem_requests(self.spec.name)
         self._queryable = self.session.declare_queryable(
             key, zenoh.handlers.Callback(self._on_query, lambda: None)
         )
@@ -110,10 +111,10 @@ class DemService(LiveService):
             log.warning("dem request rejected: %s", exc)
 
     # -- jobs --------------------------------------------------------------------------------
-    def _pub(self, job: str, signal: str, model: type) -> HistoryPublisher:
+    def _pub(self, job: str, signal: str, model: type) -> Publisher:
         k = keys.dem_job(self.spec.name, job, signal)
         if k not in self._pubs:
-            self._pubs[k] = self.history_publisher(k, model)
+            self._pubs[k] = self.publisher(k, model, history=True)
         return self._pubs[k]
 
     def _progress(

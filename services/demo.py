@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from schemas import keys
 from schemas.bus_config import BusConfig
 from services.bus import free_port
 from services.recording import ReplayStats, read_recording, replay_to_bus, validate_messages
@@ -103,7 +104,7 @@ def run_replay_check(
     endpoint = f"tcp/127.0.0.1:{port or free_port()}"
     cmd = [
         sys.executable, "-m", "services.cli.main", "record", str(capture),
-        "--listen", endpoint, "--line", line, "--keys", "twin/**", "--no-health",
+        "--listen", endpoint, "--line", line, "--keys", keys.ALL_LINES, "--no-health",
         "--count", str(len(valid)), "--duration", str(timeout_s),
     ]  # fmt: skip
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}

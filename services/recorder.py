@@ -13,16 +13,17 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from schemas import keys
 from schemas.line import LineSpec
-from services.bus import MessageValidator
-from services.common import HistoryFeed, LiveService
+from services.bus import HistoryFeed, MessageValidator
+from services.service import Service
 
 
-class RecorderService(LiveService):
+class RecorderService(Service):
     """See the module docstring."""
 
     def __init__(self, spec: LineSpec, path: str | Path | None = None, **kwargs: Any) -> None:
-        super().__init__("recorder", spec, **kwargs)
+        super().__init__("recorder", spec=spec, **kwargs)
         p = Path(path or spec.record_path or "twin-live.mcap")
         self.path = p if p.is_absolute() else self.state_path / p
         self._lock = threading.Lock()
@@ -34,11 +35,11 @@ class RecorderService(LiveService):
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.rec = McapRecorder(self.path, flush_every=2000, flush_period_s=1.0)
         self.validator = MessageValidator(self.counters, name=self.name, check_time=False)
-        self._sub = HistoryFeed(self.session, f"twin/{self.spec.name}/**", self._on_payload)
+        self._sub = HistoryFeed(self.session, keys.everything(self.spec.name), self._on_payload)
         self._entities.append(self._sub)
 
     def _on_payload(self, key: str, payload: bytes) -> None:
-        if "/service/" in key:
+        if keys.is_service_key(key):
             return  # health and liveliness are not plant data
         msg = self.validator.check(key, payload)
         if msg is None:

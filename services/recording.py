@@ -254,6 +254,22 @@ class Recording:
             return 0.0
         return (self.messages[-1].log_time_ns - self.messages[0].log_time_ns) / NS
 
+    @classmethod
+    def from_messages(cls, messages: Iterable[tuple[str, Message]]) -> Recording:
+        """An in-memory recording of (key, message) pairs in plant-time order (``log_time`` =
+        plant time), e.g. a simulated run to replay."""
+        msgs, channels = [], {}
+        for key, msg in messages:
+            model = type(msg)
+            if key not in channels:
+                channels[key] = ChannelInfo(key, schema_name(model), json_schema(model))
+            channels[key].message_count += 1
+            ns = plant_time_ns(msg.t)
+            seq = channels[key].message_count - 1
+            msgs.append(RecordedMessage(key, ns, ns, seq, msg.to_json_bytes(), schema_name(model)))
+        msgs.sort(key=lambda m: m.log_time_ns)
+        return cls(Path("<memory>"), msgs, channels)
+
     def loss_report(self) -> str:
         """One line about completeness, e.g. for ``twin inspect`` and replay."""
         if not self.truncated:
@@ -493,12 +509,14 @@ class LineData(NamedTuple):
     ``signals``: a DataFrame indexed by ``t_s`` (plant time, s, float, ascending, unique): one row
     per distinct plant time at which any of the signals below was recorded; a column is NaN where
     its signal has no sample at that time (align with ``.ffill()`` / ``.interpolate()`` as
-    needed). Columns (one group per feeder component / sensor+component / model+component found):
+    needed). Columns (one group per feeder id / sensor+component / model+component found; the
+    feeder id is the ``<id>`` of ``twin/<line>/feeder/<id>/flow``, so two feeders of one
+    component are two groups):
 
-    - ``flow_<component>_kg_h`` (float): measured mass flow of the feeder of that component;
-    - ``setpoint_<component>_kg_h``, ``screw_speed_<component>_rpm``,
-      ``hopper_mass_<component>_kg``, ``feed_factor_<component>_g_rev`` (float);
-    - ``refilling_<component>`` (float 1.0/0.0, NaN where no sample);
+    - ``flow_<feeder>_kg_h`` (float): measured mass flow of that feeder;
+    - ``setpoint_<feeder>_kg_h``, ``screw_speed_<feeder>_rpm``,
+      ``hopper_mass_<feeder>_kg``, ``feed_factor_<feeder>_g_rev`` (float);
+    - ``refilling_<feeder>`` (float 1.0/0.0, NaN where no sample);
     - ``total_flow_kg_h`` (float): sum of the ``flow_*`` columns where all are present;
     - ``conc_<sensor>_<component>_pct_w_w`` (float): measured concentration, % w/w;
     - ``quality_<sensor>_<component>`` (str 'good'/'suspect'/'bad', or NaN);
@@ -548,7 +566,7 @@ def load_line_data(path: str | Path) -> LineData:
         msg = model.model_validate_json(m.payload)
         t = msg.t
         if isinstance(msg, FeederFlow):
-            c = msg.component
+            c = keys_mod.parse_key(m.key).id
             cols[f"flow_{c}_kg_h"][t] = msg.mass_flow_kg_h
             flow_cols.add(f"flow_{c}_kg_h")
             if msg.setpoint_kg_h is not None:
@@ -609,7 +627,7 @@ def record_bus(
     path: str | Path,
     config: Any = None,
     *,
-    key_expr: str = "twin/**",
+    key_expr: str = keys_mod.ALL_LINES,
     count: int | None = None,
     duration_s: float | None = None,
     idle_timeout_s: float | None = None,
@@ -628,7 +646,7 @@ def record_bus(
     without a model is recorded if its payload is a JSON object with a numeric ``t`` >= 0.
     ``exclude_health``: skip ``twin/<line>/service/...`` keys (health of the services).
     """
-    from services.bus import Service
+    from services.service import Service
 
     svc = Service(service_name, config, install_signal_handlers=install_signal_handlers)
     lock = threading.Lock()
@@ -636,7 +654,7 @@ def record_bus(
     recorder = McapRecorder(path, flush_every=flush_every)
 
     def on_message(key: str, msg: Any, raw: bytes) -> None:
-        if exclude_health and key.split("/")[2:3] == ["service"]:
+        if exclude_health and keys_mod.is_service_key(key):
             return
         if isinstance(msg, dict):
             t = msg.get("t")
@@ -699,6 +717,136 @@ def validate_messages(rec: Recording) -> tuple[list[RecordedMessage], dict[str, 
     return valid, {k: v for k, v in counters.snapshot().items() if k.startswith("rejected")}
 
 
+class BusReplay:
+    """Publishes a recording onto the bus, as recorded: the one replay of the twin (``twin
+    replay``, the demo's record/replay check, the virtual plant feeding the live twin).
+
+    Use as a context manager: entering opens a :class:`~services.service.Service` session and
+    declares a publisher for every recorded key before the first sample (a publisher declared on
+    first use reaches subscribers only through late-publisher detection), then waits up to
+    ``wait_for_subscribers_s`` until every plain publisher has a matching subscriber and
+    ``settle_s`` more; :meth:`replay` publishes (:func:`replay`, the payloads byte for byte);
+    leaving waits (up to ``drain_timeout_s``, ``services.bus.barrier``) until every service
+    that received any message of a replayed key received all of them (zenoh drops a closing
+    session's queued messages), ``linger_s`` more for subscribers that are not services, and
+    closes. The publishers' history caches live until then.
+
+    With ``spec`` (a :class:`~schemas.line.LineSpec`: the virtual plant of a live twin) the
+    session is the line's client bus, the publishers keep the line's history (late or restarted
+    services fetch it) and the replay ends with an ``END_OF_STREAM`` event on
+    ``keys.replay_event(line)`` at the plant time of the last sample. Recorded messages that do
+    not validate are skipped (counted in :attr:`rejected`).
+    """
+
+    def __init__(
+        self,
+        rec: Recording,
+        config: Any = None,
+        *,
+        spec: Any = None,
+        wait_for_subscribers_s: float = 0.0,
+        settle_s: float = 0.0,
+        drain_timeout_s: float = 10.0,
+        linger_s: float = 0.0,
+        service_name: str = "replay",
+        install_signal_handlers: bool = True,
+    ) -> None:
+        from services.service import Service
+
+        valid, self.rejected = validate_messages(rec)
+        if any(self.rejected.values()):
+            log.warning("replay: skipping invalid recorded messages: %s", self.rejected)
+        self.rec = Recording(rec.path, valid, rec.channels, rec.truncated, rec.error)
+        self.spec = spec
+        self.wait_for_subscribers_s = wait_for_subscribers_s
+        self.settle_s = settle_s
+        self.drain_timeout_s = drain_timeout_s
+        self.linger_s = linger_s
+        self.svc = Service(
+            service_name, config, spec=spec, install_signal_handlers=install_signal_handlers
+        )
+        self.sent: Counter[str] = Counter()
+        self.acknowledged_by: list[str] = []
+        self.pubs: dict[str, Any] = {}
+        self._baseline: Any = None
+
+    def __enter__(self) -> BusReplay:
+        from services.bus import ping
+
+        svc = self.svc.open()
+        history = self.spec is not None
+        try:
+            recorded = sorted({m.key for m in self.rec.messages})
+            if history:
+                recorded.append(keys_mod.replay_event(self.spec.name))
+            self.pubs = {key: svc.publisher(key, history=history) for key in recorded}
+            deadline = time.monotonic() + self.wait_for_subscribers_s
+            while not history and time.monotonic() < deadline and not svc.stopping:
+                if all(p.has_subscribers() for p in self.pubs.values()):
+                    break
+                time.sleep(0.02)
+            if self.settle_s > 0:
+                svc.stop_flag.wait(self.settle_s)
+            self._baseline = ping(svc.session)
+        except BaseException:
+            svc.close()
+            raise
+        return self
+
+    def _publish(self, key: str, payload: bytes) -> None:
+        self.pubs[key].put_raw(payload)
+        self.sent[key] += 1
+
+    def replay(
+        self,
+        *,
+        speed: float = 1.0,
+        as_fast_as_possible: bool = False,
+        loop: bool = False,
+        max_passes: int | None = None,
+    ) -> ReplayStats:
+        """Publish the recording (:func:`replay`); with a line spec, then the end of stream."""
+        stats = replay(
+            self.rec,
+            self._publish,
+            speed=speed,
+            as_fast_as_possible=as_fast_as_possible,
+            loop=loop,
+            max_passes=max_passes,
+            should_stop=self.svc.stop_flag.is_set,
+        )
+        if self.spec is not None:
+            from schemas.messages import END_OF_STREAM, Event
+
+            msgs = self.rec.messages
+            end = Event(
+                t=msgs[-1].t if msgs else 0.0,
+                seq=0,
+                kind="note",
+                source="replay",
+                detail=END_OF_STREAM,
+            )
+            self._publish(keys_mod.replay_event(self.spec.name), end.to_json_bytes())
+        return stats
+
+    def __exit__(self, *exc: Any) -> None:
+        from services.bus import barrier
+
+        try:
+            if self.svc.session is not None and not self.svc.stopping:
+                health = barrier(
+                    self.svc.session,
+                    timeout_s=self.drain_timeout_s,
+                    sent=dict(self.sent),
+                    baseline=self._baseline,
+                )
+                self.acknowledged_by = sorted(h.service for h in health)
+                if self.linger_s > 0:
+                    time.sleep(self.linger_s)
+        finally:
+            self.svc.close()
+
+
 def replay_to_bus(
     rec: Recording,
     config: Any = None,
@@ -707,61 +855,24 @@ def replay_to_bus(
     as_fast_as_possible: bool = False,
     loop: bool = False,
     max_passes: int | None = None,
-    wait_for_subscribers_s: float = 0.0,
-    settle_s: float = 0.0,
-    drain_timeout_s: float = 10.0,
-    linger_s: float = 0.0,
-    service_name: str = "replay",
-    install_signal_handlers: bool = True,
+    **options: Any,
 ) -> ReplayStats:
-    """Publish a recording onto the bus (see :func:`replay`), validating every message first.
-
-    ``wait_for_subscribers_s``: wait up to this long until every channel's publisher has a
-    matching subscriber before starting; ``settle_s``: extra wait before starting (lets the
-    subscriber side finish declaring). Stops early on SIGINT/SIGTERM.
-
-    Before closing, the replay waits (up to ``drain_timeout_s``, :func:`services.bus.barrier`)
-    until every :class:`services.bus.Service` on the bus that received any message of a
-    replayed key received all of them and its counts stopped changing: zenoh drops a closing
-    session's queued messages. Subscribers that are not a ``Service``
-    are not covered; ``linger_s`` keeps the session open that much longer for them.
-    """
-    from services.bus import Service, barrier, ping
-
-    valid, rejected = validate_messages(rec)
-    if any(rejected.values()):
-        log.warning("replay: skipping invalid recorded messages: %s", rejected)
-    rec_valid = Recording(rec.path, valid, rec.channels, rec.truncated, rec.error)
-    with Service(service_name, config, install_signal_handlers=install_signal_handlers) as svc:
-        pubs = {key: svc.raw_publisher(key) for key in sorted({m.key for m in valid})}
-        deadline = time.monotonic() + wait_for_subscribers_s
-        while wait_for_subscribers_s > 0 and time.monotonic() < deadline:
-            if all(p.has_subscribers() for p in pubs.values()) or svc.stopping:
-                break
-            time.sleep(0.02)
-        if settle_s > 0:
-            svc.stop_flag.wait(settle_s)
-        baseline = ping(svc.session)
-        sent: Counter[str] = Counter()
-
-        def publish(key: str, payload: bytes) -> None:
-            pubs[key].put(payload)
-            sent[key] += 1
-            svc.counters.inc("published")
-
-        stats = replay(
-            rec_valid,
-            publish,
-            speed=speed,
-            as_fast_as_possible=as_fast_as_possible,
-            loop=loop,
-            max_passes=max_passes,
-            should_stop=svc.stop_flag.is_set,
+    """Publish a recording onto the bus and drain (:class:`BusReplay`; ``options`` are its
+    keyword arguments); return the replay's statistics."""
+    with BusReplay(rec, config, **options) as r:
+        stats = r.replay(
+            speed=speed, as_fast_as_possible=as_fast_as_possible, loop=loop, max_passes=max_passes
         )
-        # drain: the sender's queue is dropped when the session closes, so wait until every
-        # service on the bus has processed what was sent (see services.bus.barrier)
-        health = barrier(svc.session, timeout_s=drain_timeout_s, sent=sent, baseline=baseline)
-        stats.acknowledged_by = sorted(h.service for h in health)
-        if linger_s > 0:
-            time.sleep(linger_s)
+    stats.acknowledged_by = r.acknowledged_by
     return stats
+
+
+def write_messages(path: str | Path, messages: Iterable[tuple[str, Message]]) -> int:
+    """Write (key, message) pairs to an MCAP recording (:class:`McapRecorder`, ``log_time`` =
+    plant time); return how many."""
+    n = 0
+    with McapRecorder(path) as rec:
+        for k, msg in messages:
+            rec.write_message(k, msg, publish_time_ns=int(msg.t * 1e9))
+            n += 1
+    return n

@@ -31,7 +31,7 @@ import zenoh
 from schemas import keys
 from schemas.line import LineSpec
 from schemas.messages import ServiceHealth
-from services.bus import TypedPublisher, open_session
+from services.bus import Publisher, open_session
 from services.common import STATE_ENV
 
 log = logging.getLogger(__name__)
@@ -100,14 +100,14 @@ class Supervisor:
         self.spec.to_file(self.config_path)
         self.session = open_session(self.spec.router_bus())
         self._liveliness = self.session.liveliness().declare_subscriber(
-            f"twin/{self.spec.name}/service/*/alive",
+            keys.services_alive(self.spec.name),
             zenoh.handlers.Callback(self._on_alive, lambda: None),
             history=True,
         )
         self._token = self.session.liveliness().declare_token(
             keys.service_alive(self.spec.name, "supervisor")
         )
-        self._health = TypedPublisher(
+        self._health = Publisher(
             self.session, keys.service_health(self.spec.name, "supervisor"), ServiceHealth
         )
         self._t0 = time.monotonic()
@@ -124,7 +124,7 @@ class Supervisor:
         self.stop()
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
-        name = str(sample.key_expr).split("/")[-2]
+        name = keys.parse_key(str(sample.key_expr)).id
         with self._lock:
             if sample.kind == zenoh.SampleKind.PUT:
                 self.alive.add(name)
@@ -139,10 +139,10 @@ class Supervisor:
         names = set()
         assert self.session is not None
         for reply in self.session.liveliness().get(
-            f"twin/{self.spec.name}/service/*/alive", timeout=timeout_s
+            keys.services_alive(self.spec.name), timeout=timeout_s
         ):
             if reply.ok is not None:
-                names.add(str(reply.ok.key_expr).split("/")[-2])
+                names.add(keys.parse_key(str(reply.ok.key_expr)).id)
         with self._lock:
             self.alive = names
         return names

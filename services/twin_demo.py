@@ -35,7 +35,8 @@ from schemas.messages import (
     RtdEstimate,
     ServiceHealth,
 )
-from services.bus import free_port
+from services.bus import HistoryFeed, free_port, open_session
+from services.common import format_alert
 
 log = logging.getLogger(__name__)
 
@@ -103,10 +104,6 @@ class _Tap:
 
     def __init__(self, spec: LineSpec, echo: bool) -> None:
         import zenoh
-
-        from services.bus import open_session
-        from services.cli.live import format_alert
-        from services.common import HistoryFeed
 
         self.lock = threading.Lock()
         self.alerts: dict[str, OosAlert] = {}
@@ -180,7 +177,7 @@ class _Tap:
                 live(cb(MeasuredConcentration, on_meas)),
             ),
             self.session.declare_subscriber(
-                f"twin/{line}/service/*/health",
+                keys.services_health(line),
                 live(cb(ServiceHealth, lambda h: self.health.__setitem__(h.service, h))),
             ),
         ]
@@ -192,41 +189,19 @@ class _Tap:
 
 
 def _figure(path: Path, tap: _Tap, spec: LineSpec) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """``outlet.png``: measured vs predicted, alert windows shaded (``twin_core.online.plots``)."""
+    from twin_core.online.plots import plot_outlet
 
     lim = spec.limits(spec.sensor.component)
-    fig, ax = plt.subplots(figsize=(11, 4.5))
-    tm = np.array(sorted(tap.meas))
-    tp = np.array(sorted(tap.pred))
-    if tm.size:
-        ax.plot(tm, [tap.meas[t] for t in tm], ".", ms=2, color="0.55", label="measured (NIR)")
-    if tp.size:
-        ax.plot(tp, [tap.pred[t] for t in tp], "-", lw=1.2, color="C0", label="predicted (blender)")
-    if lim is not None:
-        for v, ls in (
-            (lim.target_pct_w_w, "-"),
-            (lim.lower_pct_w_w, "--"),
-            (lim.upper_pct_w_w, "--"),
-        ):
-            ax.axhline(v, color="k", lw=0.8, ls=ls)
-    for i, a in enumerate(sorted(tap.alerts.values(), key=lambda a: a.t_start_s)):
-        ax.axvspan(
-            a.t_start_s,
-            a.t_end_s,
-            color="C3",
-            alpha=0.2,
-            label="OOS alert window" if i == 0 else None,
-        )
-    ax.set_xlabel("plant time (s)")
-    ax.set_ylabel(f"{spec.sensor.component} at the outlet (% w/w)")
-    ax.legend(loc="upper right", fontsize=8)
-    ax.set_title(f"Live twin of {spec.name}: measured vs predicted, alert windows shaded")
-    fig.tight_layout()
+    fig = plot_outlet(
+        tap.meas,
+        tap.pred,
+        spec.sensor.component,
+        spec.name,
+        None if lim is None else (lim.target_pct_w_w, lim.lower_pct_w_w, lim.upper_pct_w_w),
+        [(a.t_start_s, a.t_end_s) for a in tap.alerts.values()],
+    )
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def run_full_twin_demo(
@@ -235,8 +210,7 @@ def run_full_twin_demo(
     """Run the live twin on ``recording`` (default: the bundled ``recordings/line1_30min.mcap``)
     replayed at ``speed`` x real time (``inf``: as fast as the bus takes it); write
     ``report.json``, ``report.md`` and ``outlet.png`` to ``out_dir``; return the report dict."""
-    from services.plant import Replayer
-    from services.recording import read_recording
+    from services.recording import BusReplay, read_recording
     from services.supervisor import Supervisor
 
     out = Path(out_dir)
@@ -256,11 +230,15 @@ def run_full_twin_demo(
         timings["startup_s"] = time.perf_counter() - t0
         tap = _Tap(spec, echo)
         time.sleep(1.5)  # past the services' catch-up (>= 1 s after their token)
-        with Replayer(
-            spec, rec, speed=speed, feeder_unit="loadcell", install_signal_handlers=False
+        with BusReplay(
+            rec, spec=spec, settle_s=0.5, service_name="plant", install_signal_handlers=False
         ) as rp:
-            n_sent = rp.replay()
-            timings["replay_wall_s"] = rp.wall_s
+            stats = rp.replay(
+                speed=speed if math.isfinite(speed) else 1.0,
+                as_fast_as_possible=not math.isfinite(speed),
+            )
+            n_sent = stats.published
+            timings["replay_wall_s"] = stats.wall_s
             last_t = rec.messages[-1].t if rec.messages else 0.0
             n_windows = expected_findings(spec, rec.messages[0].t if rec.messages else 0.0, last_t)
             t_wait = time.perf_counter()

@@ -18,14 +18,14 @@ from schemas.bus_config import BusConfig
 from schemas.messages import FeederFlow, MeasuredConcentration, ServiceHealth
 from services.bus import (
     Counters,
-    Service,
-    TypedPublisher,
+    Publisher,
     barrier,
     free_port,
     live_services,
     open_session,
     ping,
 )
+from services.service import Service
 
 LINE = "tline"
 IN_KEY = keys.measured_concentration(LINE, "in")
@@ -112,7 +112,7 @@ def test_invalid_payloads_are_counted_and_skipped():
     ):
         sink.subscribe("twin/tline/feeder/**", lambda k, m: got.append(m))
         time.sleep(1.0)
-        pub = TypedPublisher(src, key, FeederFlow, check_time=False)
+        pub = Publisher(src, key, FeederFlow, check_time=False)
         pub.publish(dict(t=1.0, **good))
         src.put(key, b"{not json")
         src.put(key, b'{"t": 2.0, "seq": 1}')
@@ -146,7 +146,7 @@ def test_invalid_payloads_are_counted_and_skipped():
 def test_publish_validates():
     port = free_port()
     with open_session(BusConfig.loopback(port, listen=True)) as s:
-        pub = TypedPublisher(s, keys.feeder_flow("l", "api"), FeederFlow, counters=Counters())
+        pub = Publisher(s, keys.feeder_flow("l", "api"), FeederFlow, counters=Counters())
         with pytest.raises(ValueError, match="mass_flow_kg_h"):
             pub.publish(
                 dict(
@@ -165,7 +165,7 @@ def test_publish_validates():
                 )
             )
         with pytest.raises(ValueError, match=r"got .\*."):
-            TypedPublisher(s, "twin/l/feeder/*/flow", FeederFlow)
+            Publisher(s, "twin/l/feeder/*/flow", FeederFlow)
         assert pub.counters.get("published") == 0
         good = dict(
             component="api",
@@ -185,7 +185,7 @@ SERVICE_SCRIPT = textwrap.dedent(
     """
     import sys, time
     from schemas.bus_config import BusConfig
-    from services.bus import Service
+    from services.service import Service
     with Service("sleeper", BusConfig.loopback(int(sys.argv[1]), listen=False, line="tline"),
                  health_period_s=0.1) as svc:
         svc.subscribe("twin/**", lambda k, m: None)
@@ -244,7 +244,7 @@ def test_barrier_returns_after_every_service_processed_the_burst():
     with Service("slow", cfg, health_period_s=0, install_signal_handlers=False) as svc:
         svc.subscribe(IN_KEY, slow, model=MeasuredConcentration)
         with open_session(BusConfig.loopback(port, listen=False, line=LINE)) as src:
-            pub = TypedPublisher(src, IN_KEY, MeasuredConcentration)
+            pub = Publisher(src, IN_KEY, MeasuredConcentration)
             assert wait_for(pub.has_subscribers, 10)
             baseline = ping(src)
             for i in range(n):

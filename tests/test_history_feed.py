@@ -16,8 +16,7 @@ import zenoh
 import zenoh.ext as zext
 
 from schemas.bus_config import BusConfig
-from services.bus import free_port, open_session
-from services.common import HistoryFeed
+from services.bus import HistoryFeed, free_port, open_session
 
 N_KEYS = 5
 

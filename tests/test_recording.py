@@ -20,7 +20,7 @@ from mcap.reader import make_reader
 from schemas import keys
 from schemas.bus_config import BusConfig
 from schemas.messages import Event, FeederFlow, MeasuredConcentration
-from services.bus import Service, free_port
+from services.bus import free_port
 from services.recording import (
     McapRecorder,
     load_line_data,
@@ -29,6 +29,7 @@ from services.recording import (
     replay_to_bus,
     summarize,
 )
+from services.service import Service
 
 LINE = "rline"
 FLOW = keys.feeder_flow(LINE, "api")
@@ -296,6 +297,22 @@ def test_load_line_data(tmp_path):
     assert events.loc[0, "mass_kg"] == 0.01 and events.loc[0, "component"] == "api"
 
 
+def test_load_line_data_keys_flows_by_feeder(tmp_path):
+    """Two feeders of one component (the flows of ``twin/<line>/feeder/<id>/flow``) stay two
+    signals: none overwrites the other, and the total is their sum."""
+    path = tmp_path / "two.mcap"
+    with McapRecorder(path) as rec:
+        for i in range(5):
+            for fid, q in (("api_a", 0.4), ("api_b", 0.8)):
+                msg = flow(float(i), i).model_copy(update={"mass_flow_kg_h": q})
+                rec.write_message(keys.feeder_flow(LINE, fid), msg)
+    signals, _ = load_line_data(path)
+    assert signals["flow_api_a_kg_h"].tolist() == [0.4] * 5
+    assert signals["flow_api_b_kg_h"].tolist() == [0.8] * 5
+    assert signals["total_flow_kg_h"].tolist() == pytest.approx([1.2] * 5)
+    assert "flow_api_kg_h" not in signals
+
+
 def test_cli_inspect_and_schemas(tmp_path):
     path = tmp_path / "i.mcap"
     write_sample(path, 300, flush_every=50)
@@ -322,7 +339,7 @@ def test_cli_inspect_and_schemas(tmp_path):
 def test_twin_record_finalizes_the_file_on_signal(tmp_path, sig):
     """`twin record` stopped by SIGINT/SIGTERM exits 0 and leaves a complete (indexed) file
     holding every message it received."""
-    from services.bus import TypedPublisher, barrier, open_session, ping
+    from services.bus import Publisher, barrier, open_session, ping
 
     out = tmp_path / "sig.mcap"
     ep = f"tcp/127.0.0.1:{free_port()}"
@@ -337,7 +354,7 @@ def test_twin_record_finalizes_the_file_on_signal(tmp_path, sig):
     try:
         assert proc.stdout.readline().strip() == "ready"
         with open_session(BusConfig(connect=[ep], line=LINE)) as s:
-            pub = TypedPublisher(s, CONC, MeasuredConcentration)
+            pub = Publisher(s, CONC, MeasuredConcentration)
             deadline = time.monotonic() + 10
             while not pub.has_subscribers() and time.monotonic() < deadline:
                 time.sleep(0.02)

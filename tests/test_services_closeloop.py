@@ -21,11 +21,10 @@ from schemas import keys
 from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import ServiceHealth
-from services.bus import free_port, open_session
-from services.common import HistoryFeed
-from services.plant import Replayer, simulate_messages, write_recording
-from services.recording import read_recording
+from services.bus import HistoryFeed, free_port, open_session
+from services.recording import BusReplay, read_recording, write_messages
 from services.supervisor import Supervisor
+from twin_core.plant.messages import simulate_messages
 from twin_core.plant.model import LineModel
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
@@ -55,7 +54,7 @@ def live(tmp_path_factory):
         spec, DURATION_S, seed=5, disturbances=DISTURBANCES, effects=[EFFECT]
     )
     rec_path = tmp / "plant.mcap"
-    write_recording(rec_path, msgs)
+    write_messages(rec_path, msgs)
     rec = read_recording(rec_path)
     findings: dict[str, ModelFinding] = {}
     health: dict[str, ServiceHealth] = {}
@@ -78,16 +77,16 @@ def live(tmp_path_factory):
         with open_session(spec.client_bus()) as s:
             subs = [
                 HistoryFeed(s, keys.model_finding(spec.name), on_finding),
-                HistoryFeed(s, f"twin/{spec.name}/service/*/health", on_health),
+                HistoryFeed(s, keys.services_health(spec.name), on_health),
             ]
             time.sleep(1.5)
-            with Replayer(
-                spec, rec, speed=200.0, feeder_unit="loadcell", install_signal_handlers=False
+            with BusReplay(
+                rec, spec=spec, settle_s=0.5, service_name="plant", install_signal_handlers=False
             ) as rp:
-                rp.replay()
-            end = time.monotonic() + 90
-            while time.monotonic() < end and len(findings) < n_windows:
-                time.sleep(0.1)
+                rp.replay(speed=200.0)
+                end = time.monotonic() + 90
+                while time.monotonic() < end and len(findings) < n_windows:
+                    time.sleep(0.1)
             time.sleep(2.5)  # health of the last state
             for sub in subs:
                 sub.undeclare()

@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from schemas.line import LineSpec
-from services.plant import simulate_messages, write_recording
+from services.recording import write_messages
 from services.twin_demo import run_full_twin_demo
+from twin_core.plant.messages import simulate_messages
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
 
@@ -25,7 +26,7 @@ def test_full_twin_demo_report_and_figure(tmp_path):
         disturbances=[{"feeder": "api", "t_s": 200.0, "delta_kg_h": 0.6, "duration_s": 30.0}],
     )
     rec = tmp_path / "short.mcap"
-    write_recording(rec, msgs)
+    write_messages(rec, msgs)
     out = tmp_path / "demo"
     report = run_full_twin_demo(rec, out, speed=100.0, echo=False)
     assert report["messages_replayed"] == len(msgs)

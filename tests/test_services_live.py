@@ -24,13 +24,14 @@ import numpy as np
 import pytest
 import zenoh
 
+from schemas import keys
 from schemas.line import LineSpec
 from schemas.messages import DivertCommand, OosAlert, ServiceHealth
-from services.blender import blender_kernel
 from services.bus import free_port, open_session
-from services.plant import Replayer, simulate_messages, write_recording
-from services.recording import read_recording
+from services.recording import BusReplay, read_recording, write_messages
 from services.supervisor import Supervisor
+from twin_core.online.blender import declared_kernel
+from twin_core.plant.messages import simulate_messages
 from twin_core.quality.lots import diversion_window
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
@@ -62,11 +63,9 @@ class Collector:
         self.session = open_session(spec.client_bus())
         line = spec.name
         self.subs = [
-            self.session.declare_subscriber(f"twin/{line}/oos/alert", self._cb(OosAlert)),
-            self.session.declare_subscriber(f"twin/{line}/divert/command", self._cb(DivertCommand)),
-            self.session.declare_subscriber(
-                f"twin/{line}/service/*/health", self._cb(ServiceHealth)
-            ),
+            self.session.declare_subscriber(keys.oos_alert(line), self._cb(OosAlert)),
+            self.session.declare_subscriber(keys.divert_command(line), self._cb(DivertCommand)),
+            self.session.declare_subscriber(keys.services_health(line), self._cb(ServiceHealth)),
         ]
 
     def _cb(self, model):
@@ -88,6 +87,14 @@ class Collector:
         self.session.close()
 
 
+def plant_replay(spec: LineSpec, rec) -> BusReplay:
+    """The virtual plant replaying ``rec`` into the twin of ``spec`` (as ``twin replay
+    --config``)."""
+    return BusReplay(
+        rec, spec=spec, settle_s=0.5, service_name="plant", install_signal_handlers=False
+    )
+
+
 def wait_until(pred, timeout: float) -> bool:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -103,7 +110,7 @@ def run_a(tmp_path_factory):
     spec = make_spec(free_port(), tmp, ["feeder", "blender", "oos", "recorder"])
     run, msgs = simulate_messages(spec, 1800.0, seed=3, disturbances=DISTURBANCES)
     rec_path = tmp / "disturbed.mcap"
-    write_recording(rec_path, msgs)
+    write_messages(rec_path, msgs)
     rec = read_recording(rec_path)
     out: dict = {"spec": spec, "n_recorded": len(rec.messages)}
     sup = Supervisor(spec, backoff_s=0.2).start()
@@ -112,9 +119,7 @@ def run_a(tmp_path_factory):
         assert sup.wait_ready(120), f"services not ready: alive {sup.alive}"
         col = Collector(spec)
         time.sleep(1.5)  # past the services' catch-up (>= 1 s after their token)
-        with Replayer(
-            spec, rec, speed=300.0, feeder_unit="loadcell", install_signal_handlers=False
-        ) as rp:
+        with plant_replay(spec, rec) as rp:
             killer_done = threading.Event()
 
             def kill_oos() -> None:
@@ -128,10 +133,10 @@ def run_a(tmp_path_factory):
 
             threading.Thread(target=kill_oos, daemon=True).start()
             # malformed input on the bus, mid-run
-            bad = rp.session.declare_publisher("twin/line1/feeder/api/flow")
+            bad = rp.svc.session.declare_publisher(keys.feeder_flow("line1", "api"))
             for payload in (b"not json", b'{"t": 1, "seq": 0}', b'{"t": NaN}'):
                 bad.put(payload)
-            out["n_sent"] = rp.replay()
+            out["n_sent"] = rp.replay(speed=300.0).published
             killer_done.wait(60)
             # the restarted oos catches up from the publishers' history
             ok = wait_until(lambda: len(col.alerts) >= 2, 90)
@@ -155,7 +160,7 @@ def run_a(tmp_path_factory):
 
 
 def expected_windows(spec: LineSpec) -> list[tuple[float, float]]:
-    e = blender_kernel(spec)
+    e = declared_kernel(spec)
     tk = np.arange(e.size) * spec.dt_s
     return [
         diversion_window(d["t_s"], d["t_s"] + d["duration_s"] - spec.dt_s, tk, e)
@@ -203,9 +208,9 @@ def test_no_message_dropped_and_recorded(run_a):
     for m in rec.messages:
         counts[m.key] = counts.get(m.key, 0) + 1
     n_ticks = 1801
-    for f in ("api", "excipient"):
-        assert counts[f"twin/line1/loadcell/{f}/flow"] == n_ticks
-        assert counts[f"twin/line1/feeder/{f}/flow"] == n_ticks
+    for f in ("api", "excipient"):  # the plant's flows, as replayed (no second copy)
+        assert counts[keys.feeder_flow("line1", f)] == n_ticks
+    assert not [k for k in counts if "/loadcell/" in k]
     assert counts["twin/line1/blender/outlet/predicted"] == 2 * n_ticks
     assert counts["twin/line1/oos/alert"] == 2
 
@@ -216,7 +221,7 @@ def run_b(tmp_path_factory):
     spec = make_spec(free_port(), tmp, ["blender", "oos"])
     _, msgs = simulate_messages(spec, 1200.0, seed=4)
     path = tmp / "clean.mcap"
-    write_recording(path, msgs)
+    write_messages(path, msgs)
     data = path.read_bytes()
     cut = tmp / "cut.mcap"
     cut.write_bytes(data[: int(len(data) * 0.6)])
@@ -228,8 +233,8 @@ def run_b(tmp_path_factory):
         assert sup.wait_ready(120)
         col = Collector(spec)
         time.sleep(1.5)  # past the services' catch-up
-        with Replayer(spec, rec, speed=math_inf(), install_signal_handlers=False) as rp:
-            out["n_sent"] = rp.replay()
+        with plant_replay(spec, rec) as rp:
+            out["n_sent"] = rp.replay(as_fast_as_possible=True).published
             assert wait_until(
                 lambda: "oos" in col.health and col.health["oos"].t >= rec.messages[-1].t - 1, 60
             )
@@ -242,10 +247,6 @@ def run_b(tmp_path_factory):
         if col is not None:
             col.close()
     return out
-
-
-def math_inf() -> float:
-    return float("inf")
 
 
 def test_clean_recording_cut_short_replays_and_yields_no_alert(run_b):

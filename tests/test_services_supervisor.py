@@ -8,6 +8,7 @@ import signal
 import time
 from pathlib import Path
 
+from schemas import keys
 from schemas.line import LineSpec
 from services.bus import free_port
 from services.supervisor import Supervisor
@@ -55,7 +56,8 @@ def test_a_dead_model_does_not_block_measured_oos_decisions(tmp_path):
 
     from schemas.messages import OosAlert, ServiceHealth
     from services.bus import open_session
-    from services.plant import Replayer, simulate_messages
+    from services.recording import BusReplay, Recording
+    from twin_core.plant.messages import simulate_messages
 
     data = LineSpec.from_file(CONFIG).model_dump()
     data.update(
@@ -71,7 +73,7 @@ def test_a_dead_model_does_not_block_measured_oos_decisions(tmp_path):
         seed=5,
         disturbances=[{"feeder": "api", "t_s": 100.0, "delta_kg_h": 0.6, "duration_s": 30.0}],
     )
-    items = [(k, m.t, m.to_json_bytes()) for k, m in msgs]
+    rec = Recording.from_messages(msgs)
     got: list[tuple[float, OosAlert]] = []
     health: dict[str, ServiceHealth] = {}
     lock = threading.Lock()
@@ -92,15 +94,18 @@ def test_a_dead_model_does_not_block_measured_oos_decisions(tmp_path):
 
         subs = [
             s.declare_subscriber(
-                "twin/line1/oos/alert", zenoh.handlers.Callback(on_alert, lambda: None)
+                keys.oos_alert("line1"), zenoh.handlers.Callback(on_alert, lambda: None)
             ),
             s.declare_subscriber(
-                "twin/line1/service/oos/health", zenoh.handlers.Callback(on_health, lambda: None)
+                keys.service_health("line1", "oos"),
+                zenoh.handlers.Callback(on_health, lambda: None),
             ),
         ]
         time.sleep(1.5)  # past the catch-up
-        with Replayer(spec, items, speed=90.0, install_signal_handlers=False) as rp:
-            rp.replay()
+        with BusReplay(
+            rec, spec=spec, settle_s=0.5, service_name="plant", install_signal_handlers=False
+        ) as rp:
+            rp.replay(speed=90.0)
             t_end = time.monotonic()
             time.sleep(1.5)
         for sub in subs:

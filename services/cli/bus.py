@@ -1,4 +1,5 @@
-"""``twin record | replay | inspect | schemas | router``: the bus and its recordings."""
+"""``twin record | replay | inspect | schemas | router``: the bus and its recordings (``twin replay``
+is the one replay: of a recording onto any bus, or into a running twin with ``--config``)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,8 @@ import argparse
 import logging
 import sys
 from pathlib import Path
+
+from schemas import keys
 
 log = logging.getLogger("twin.bus")
 
@@ -79,16 +82,20 @@ def cmd_replay(args: argparse.Namespace) -> int:
     rec = read_recording(args.file)
     if rec.truncated:
         print(f"warning: {rec.loss_report()}", file=sys.stderr)
-    cfg = bus_config_from_args(args)
+    if args.config:
+        from schemas.line import LineSpec
+
+        line = {"spec": LineSpec.from_file(args.config), "settle_s": 0.5, "service_name": "plant"}
+    else:
+        line = {"config": bus_config_from_args(args), "settle_s": args.settle}
     stats = replay_to_bus(
         rec,
-        cfg,
         speed=args.speed,
         as_fast_as_possible=args.as_fast_as_possible,
         loop=args.loop,
         max_passes=args.passes,
         wait_for_subscribers_s=args.wait_subscribers,
-        settle_s=args.settle,
+        **line,
     )
     print(
         f"replayed {stats.published} messages ({stats.passes} pass(es), plant span "
@@ -118,7 +125,7 @@ def cmd_schemas(args: argparse.Namespace) -> int:
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    from services.bus import Service
+    from services.service import Service
 
     cfg = bus_config_from_args(args, mode="router", listen=["tcp/127.0.0.1:7447"], connect=[])
     with Service("router", cfg) as svc:
@@ -130,7 +137,9 @@ def cmd_router(args: argparse.Namespace) -> int:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("record", help="record the bus to an MCAP file until stopped")
     p.add_argument("out", type=Path, help="output .mcap")
-    p.add_argument("--keys", default="twin/**", help="key expression to record (twin/**)")
+    p.add_argument(
+        "--keys", default=keys.ALL_LINES, help=f"key expression to record ({keys.ALL_LINES})"
+    )
     p.add_argument("--count", type=int, help="stop after this many messages")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument(
@@ -154,8 +163,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_bus_options(p)
     p.set_defaults(func=cmd_record)
 
-    p = subparsers.add_parser("replay", help="replay an MCAP recording onto the bus")
+    p = subparsers.add_parser(
+        "replay",
+        help="replay an MCAP recording onto the bus, as recorded (with --config: the virtual "
+        "plant of a running twin)",
+    )
     p.add_argument("file", type=Path)
+    p.add_argument(
+        "--config",
+        type=Path,
+        help="line YAML/JSON of a running twin: its bus, history caches for late or restarted "
+        "services, an end-of-stream event after the last message",
+    )
     speed = p.add_mutually_exclusive_group()
     speed.add_argument(
         "--speed", type=float, default=1.0, help="plant-time speed-up factor (1 = real time)"

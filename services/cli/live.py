@@ -1,15 +1,16 @@
-"""``twin up | status | alerts | plant simulate | plant replay``: the live twin from the shell."""
+"""``twin up | status | alerts | plant simulate``: the live twin from the shell (a recording is fed
+to a running twin by ``twin replay REC --config LINE``)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import logging
-import math
 import signal
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +62,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 def cmd_status(args: argparse.Namespace) -> int:
     import zenoh
 
+    from schemas import keys
     from schemas.messages import ServiceHealth
     from services.bus import live_services, open_session
 
@@ -76,7 +78,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 
     with open_session(spec.client_bus()) as s:
         sub = s.declare_subscriber(
-            f"twin/{spec.name}/service/*/health", zenoh.handlers.Callback(on_health, lambda: None)
+            keys.services_health(spec.name), zenoh.handlers.Callback(on_health, lambda: None)
         )
         alive = live_services(s, spec.name, timeout_s=args.timeout)
         time.sleep(args.timeout)
@@ -115,27 +117,11 @@ def cmd_status(args: argparse.Namespace) -> int:
     return 0
 
 
-def format_alert(msg) -> str:
-    """One line for an OOS alert or a divert command."""
-    from schemas.messages import OosAlert
-
-    if isinstance(msg, OosAlert):
-        return (
-            f"ALERT  {msg.alert_id}  {msg.component}  outlet {msg.t_start_s:.1f}-{msg.t_end_s:.1f} s"
-            f"  peak {msg.peak_deviation_pct_w_w:+.3f} % w/w (limit {msg.limit_pct_w_w})"
-            f"  [{msg.cause}]"
-        )
-    return (
-        f"DIVERT {msg.command_id}  {msg.action} {msg.t_start_s:.1f}-{msg.t_end_s:.1f} s"
-        f"  (t={msg.t:.1f} s)"
-    )
-
-
 def cmd_alerts(args: argparse.Namespace) -> int:
     from schemas import keys
     from schemas.messages import DivertCommand, OosAlert
-    from services.bus import open_session
-    from services.common import HistoryFeed
+    from services.bus import HistoryFeed, open_session
+    from services.common import format_alert
 
     spec = _spec(args)
     seen: set[str] = set()
@@ -183,36 +169,32 @@ def cmd_alerts(args: argparse.Namespace) -> int:
     return 0
 
 
+def parse_disturbance(text: str) -> dict[str, Any]:
+    """``FEEDER:T_S:DELTA_KG_H[:DURATION_S]`` -> a ``FlowDisturbance`` dict."""
+    parts = text.split(":")
+    if len(parts) not in (3, 4):
+        raise ValueError(f"disturbance must be FEEDER:T_S:DELTA_KG_H[:DURATION_S], got {text!r}")
+    d: dict[str, Any] = {"feeder": parts[0], "t_s": float(parts[1]), "delta_kg_h": float(parts[2])}
+    if len(parts) == 4:
+        d["duration_s"] = float(parts[3])
+    return d
+
+
 def cmd_plant_simulate(args: argparse.Namespace) -> int:
-    from services.plant import parse_disturbance, simulate_messages, write_recording
+    from services.recording import write_messages
+    from twin_core.plant.messages import simulate_messages
 
     spec = _spec(args)
     dists = [parse_disturbance(d) for d in args.disturbance or []]
     effects = [json.loads(e) for e in args.effect or []]
     t0 = time.perf_counter()
-    run, msgs = simulate_messages(spec, args.duration, args.seed, dists, effects)
-    n = write_recording(args.out, msgs)
+    _, msgs = simulate_messages(spec, args.duration, args.seed, dists, effects)
+    n = write_messages(args.out, msgs)
     print(
         f"wrote {n} messages ({args.duration:.0f} s of plant time, seed {args.seed}, "
         f"{len(dists)} disturbance(s), {len(effects)} effect(s)) to {args.out} in "
         f"{time.perf_counter() - t0:.1f} s"
     )
-    return 0
-
-
-def cmd_plant_replay(args: argparse.Namespace) -> int:
-    from services.plant import Replayer
-    from services.recording import read_recording
-
-    spec = _spec(args)
-    rec = read_recording(args.recording)
-    print(rec.loss_report())
-    unit = "loadcell" if ("feeder" in spec.services and spec.feeder_mode == "replay") else "feeder"
-    speed = math.inf if args.speed <= 0 else args.speed
-    with Replayer(spec, rec, speed=speed, feeder_unit=unit) as rp:
-        n = rp.replay()
-        print(f"replayed {n} messages in {rp.wall_s:.2f} s")
-        time.sleep(1.0)  # let late subscribers fetch the tail from the publishers' cache
     return 0
 
 
@@ -240,7 +222,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--timeout", type=float, default=0.0, help="exit after this many seconds")
     p.set_defaults(func=cmd_alerts)
 
-    p = subparsers.add_parser("plant", help="virtual plant: simulate or replay a recording")
+    p = subparsers.add_parser("plant", help="virtual plant: simulate a recording of the line")
     sub = p.add_subparsers(dest="plant_command", metavar="ACTION")
     ps = sub.add_parser("simulate", help="simulate the line and write an MCAP recording")
     config_arg(ps)
@@ -258,11 +240,4 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help='hidden effect as JSON (twin_core.plant.effects), e.g. \'{"name": "bypass", ...}\'',
     )
     ps.set_defaults(func=cmd_plant_simulate)
-    pr = sub.add_parser("replay", help="replay a recording onto the bus of a running twin")
-    config_arg(pr)
-    pr.add_argument("recording")
-    pr.add_argument(
-        "--speed", type=float, default=1.0, help="x real time; <= 0: as fast as possible"
-    )
-    pr.set_defaults(func=cmd_plant_replay)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
