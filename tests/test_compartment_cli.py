@@ -154,7 +154,7 @@ def test_cli_simulate_bad_input(tmp_path, caplog):
         == 0
     )
     assert main(["compartment", "simulate", str(model), "--step-at", "5"]) == 2
-    assert "--step-at needs --step-to" in caplog.text
+    assert "step_at needs step_to" in caplog.text
     assert main(["compartment", "simulate", str(model), "--dt", "0"]) == 2
     assert main(["compartment", "simulate", str(model), "--scale-at", "1", "--rpm-to", "50"]) == 2
     assert "needs rpm_basis" in caplog.text
