@@ -172,47 +172,28 @@ def _read_mapping(path: str) -> dict[str, Any]:
 
 
 def _design(args: argparse.Namespace) -> int:
-    from twin_core.calibration import (
-        SEED_LEVELS,
-        correlation_map,
-        definitive_screening_design,
-        dsd_properties,
-    )
-    from twin_core.calibration.plots import plot_correlation_map
+    from twin_core.calibration import SEED_LEVELS
+    from twin_core.calibration.studies import design_study
 
     if args.levels and args.factors:
         raise SystemExit("give --levels or --factors, not both")
     factors: Any = args.factors or (_read_mapping(args.levels) if args.levels else SEED_LEVELS)
     try:
-        d = definitive_screening_design(
-            factors, extra_runs=not args.no_extra_runs, randomize=args.randomize, seed=args.seed
+        d, props = design_study(
+            factors,
+            args.out,
+            extra_runs=not args.no_extra_runs,
+            randomize=args.randomize,
+            seed=args.seed,
         )
     except ValueError as exc:
         raise SystemExit(str(exc)) from None
-    out = _out(args.out)
-    d.coded.to_csv(out / "design_coded.csv")
-    d.physical.to_csv(out / "design_physical.csv")
-    corr = correlation_map(d.coded)
-    corr.to_csv(out / "correlation_map.csv")
-    _save(plot_correlation_map(corr), out / "correlation_map.png")
-    props = dsd_properties(d.coded)
-    (out / "design.json").write_text(
-        json.dumps(
-            {
-                "runs": d.n_runs,
-                "conference_order": d.conference_order,
-                "fake_factors": d.n_fake,
-                "max_abs_r": props,
-            },
-            indent=2,
-        )
-    )
     print(d.physical.to_string())
     print(
         f"{d.n_runs} runs, {len(d.coded.columns)} factors; max |r|: "
         + ", ".join(f"{k} {v:.3g}" for k, v in props.items())
     )
-    print(f"wrote {out}/design_physical.csv, design_coded.csv, correlation_map.png")
+    print(f"wrote {args.out}/design_physical.csv, design_coded.csv, correlation_map.png")
     return 0
 
 
@@ -227,158 +208,78 @@ def _factor_list(args: argparse.Namespace, table: Any) -> list[str]:
     return factors
 
 
-def _fit_models(
-    table: Any, factors: list[str], responses: list[str], args: argparse.Namespace
-) -> dict[str, Any]:
-    from twin_core.calibration import ResponseSurface, TwoStepRSM
-
-    models: dict[str, Any] = {}
-    for r in responses:
-        try:
-            if getattr(args, "terms", None):
-                models[r] = ResponseSurface(terms=_list(args.terms)).fit(table, r)
-            else:
-                models[r] = (
-                    TwoStepRSM(
-                        factors,
-                        criterion=args.criterion,
-                        direction=getattr(args, "direction", "both"),
-                    )
-                    .fit(table, r)
-                    .model_
-                )
-        except ValueError as exc:
-            raise SystemExit(f"{r}: {exc}") from None
-    return models
-
-
-def _fit(args: argparse.Namespace) -> int:
+def _response_list(args: argparse.Namespace, table: Any, factors: list[str]) -> list[str]:
+    """--responses, or every numeric column that is not a factor or bookkeeping."""
     import pandas as pd
 
-    from twin_core.calibration.plots import plot_parity, plot_prediction_profiles
-
-    table = _load_table(args.table)
-    factors = _factor_list(args, table)
+    skip = {"run", "seed", "elapsed_s", "R2", *factors}
     responses = _list(args.responses) or [
         c
         for c in table.columns
-        if c not in factors
-        and c not in ("run", "seed", "elapsed_s", "R2")
-        and not c.endswith("_used")
-        and pd.api.types.is_numeric_dtype(table[c])
+        if c not in skip and not c.endswith("_used") and pd.api.types.is_numeric_dtype(table[c])
     ]
     if not responses:
         raise SystemExit("no response columns found; pass --responses")
-    models = _fit_models(table, factors, responses, args)
-    for m in models.values():
-        print(m.report())
-        print()
-    summary = pd.DataFrame(
-        [
-            {
-                "response": k,
-                "terms": " + ".join("*".join(t) for t in m.terms_),
-                "r2": m.r2_,
-                "r2_adj": m.r2_adj_,
-                "rmse": m.rmse_,
-                "sse": m.sse_,
-            }
-            for k, m in models.items()
-        ]
-    )
-    print(summary.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
-    pred = None
-    if args.predict:
-        new = _load_table(args.predict)
-        parts = [new[["run"]] if "run" in new.columns else pd.DataFrame(index=new.index)]
-        for k, m in models.items():
-            try:
-                iv = m.predict_interval(new)
-            except ValueError as exc:
-                raise SystemExit(f"--predict: {exc}") from None
-            parts.append(iv.add_prefix(f"{k}:").set_index(new.index))
-        pred = pd.concat(parts, axis=1)
-        print(pred.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    return responses
+
+
+def _fit(args: argparse.Namespace) -> int:
+    from twin_core.calibration.studies import fit_study
+
+    table = _load_table(args.table)
+    factors = _factor_list(args, table)
+    try:
+        study = fit_study(
+            table,
+            factors,
+            _response_list(args, table, factors),
+            args.out,
+            terms=_list(args.terms),
+            criterion=args.criterion,
+            direction=args.direction,
+            predict=_load_table(args.predict) if args.predict else None,
+            figures=not args.no_figures,
+        )
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
+    for m in study.models.values():
+        print(m.report() + "\n")
+    print(study.summary.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    if study.predictions is not None:
+        print(study.predictions.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     if args.out:
-        out = _out(args.out)
-        summary.to_csv(out / "summary.csv", index=False)
-        (out / "models.json").write_text(
-            json.dumps({k: m.to_dict() for k, m in models.items()}, indent=2)
-        )
-        (out / "report.txt").write_text("\n\n".join(m.report() for m in models.values()))
-        if not args.no_figures:
-            _save(plot_parity(models), out / "parity.png")
-            ranges = {f: (float(table[f].min()), float(table[f].max())) for f in factors}
-            for k, m in models.items():
-                if m.factors_:
-                    _save(plot_prediction_profiles(m, ranges), out / f"profiler_{k}.png")
-        effects = pd.concat(
-            [m.effect_summary().reset_index().assign(response=k) for k, m in models.items()],
-            ignore_index=True,
-        )
-        effects.to_csv(out / "effect_summary.csv", index=False)
-        if pred is not None:
-            pred.to_csv(out / "predictions.csv", index=False)
-        print(
-            f"wrote {out}/summary.csv, models.json, report.txt, parity.png, profiler_*.png, "
-            "effect_summary.csv"
-        )
+        print(f"wrote {args.out}/summary.csv, models.json, report.txt, parity.png, profiler_*.png")
     return 0
 
 
 # --------------------------------------------------------------------------- solve
 def _solve(args: argparse.Namespace) -> int:
-    from twin_core.calibration import InverseCalibration
-    from twin_core.calibration.plots import plot_contours, plot_profiles
+    from twin_core.calibration.studies import inverse_study
 
     table = _load_table(args.table)
-    factors = _factor_list(args, table)
-    targets = _pairs(args.targets, "--targets")
-    models = _fit_models(table, factors, list(targets), args)
-    unknowns = _list(args.unknowns) or []
-    bounds = _bounds(args.bounds)
-    for u in unknowns:
-        if u not in table.columns:
-            raise SystemExit(f"unknown {u!r} is not a column of the table")
-        bounds.setdefault(u, (float(table[u].min()), float(table[u].max())))
-    used = {f for m in models.values() for f in m.factors_}
-    fixed = _pairs(args.fixed, "--fixed")
-    for f in used - set(unknowns) - set(fixed):
-        fixed[f] = float(table[f].mean())
+    opts = {k: getattr(args, k) for k in ("criterion", "starts", "method", "rule", "seed")}
     try:
-        ic = InverseCalibration(models, {u: bounds[u] for u in unknowns}, fixed=fixed)
-        res = ic.solve(
-            targets, n_starts=args.starts, method=args.method, seed=args.seed, rule=args.rule
+        study = inverse_study(
+            table,
+            _factor_list(args, table),
+            _pairs(args.targets, "--targets"),
+            _list(args.unknowns) or [],
+            args.out,
+            bounds=_bounds(args.bounds),
+            fixed=_pairs(args.fixed, "--fixed"),
+            contour=_list(args.contour) or [],
+            **opts,
         )
     except ValueError as exc:
         raise SystemExit(str(exc)) from None
-    tab = res.table()
-    print(f"fixed: {fixed}")
-    print(tab.to_string(index=False, float_format=lambda v: f"{v:.5g}"))
-    print(res.diagnosis)
-    print(f"recommended ({res.rule}):")
+    res = study.result
+    print(f"fixed: {study.fixed}")
+    print(res.table().to_string(index=False, float_format=lambda v: f"{v:.5g}"))
+    print(f"{res.diagnosis}\nrecommended ({res.rule}):")
     if res.recommended is not None:
         print("  " + ", ".join(f"{k} = {v:.5g}" for k, v in res.recommended.params.items()))
-    if args.out:
-        out = _out(args.out)
-        tab.to_csv(out / "solutions.csv", index=False)
-        (out / "diagnosis.txt").write_text(res.diagnosis + "\n" + res.rule + "\n")
-        written = ["solutions.csv", "diagnosis.txt"]
-        if res.recommended is not None:
-            cx = _list(args.contour) or []
-            if len(cx) == 2 and all(c in unknowns for c in cx):
-                sols = [s.params for s in res.solutions]
-                _save(
-                    plot_contours(ic, cx[0], cx[1], res.recommended.params, targets, sols),
-                    out / "contours.png",
-                )
-                written.append("contours.png")
-            profiles = {
-                u: ic.profile(targets, u, n_points=15, n_starts=2, seed=args.seed) for u in unknowns
-            }
-            _save(plot_profiles(profiles), out / "profiles.png")
-            written.append("profiles.png")
-        print(f"wrote {out}/" + ", ".join(written))
+    if study.files:
+        print(f"wrote {args.out}/" + ", ".join(study.files))
     return 0 if res.recommended is not None else 1
 
 
@@ -443,11 +344,7 @@ def _coerce(v: str) -> Any:
 
 
 def _feeder_simulate(args: argparse.Namespace) -> int:
-    from pydantic import ValidationError
-
-    from schemas.feeder import FeederConfig
-    from twin_core.calibration.plots import plot_feeder_trace
-    from twin_core.feeder import LossInWeightFeeder
+    from twin_core.calibration.studies import feeder_study
 
     data: dict[str, Any] = _read_mapping(args.config) if args.config else {}
     if args.overrides:
@@ -457,59 +354,25 @@ def _feeder_simulate(args: argparse.Namespace) -> int:
             k, v = item.split("=", 1)
             data[k.strip()] = _coerce(v.strip())
     try:
-        cfg = FeederConfig(**data)
-        trace = LossInWeightFeeder(cfg).simulate(args.duration, args.dt, seed=args.seed)
-    except (ValidationError, ValueError) as exc:
+        summary = feeder_study(data, args.duration, args.dt, args.seed, args.out)
+    except ValueError as exc:
         raise SystemExit(f"invalid feeder configuration: {exc}") from None
-    out = _out(args.out)
-    trace.to_frame().to_csv(out / "trace.csv", index=False)
-    _save(plot_feeder_trace(trace), out / "feeder.png")
-    grav = ~trace.volumetric
-    summary = {
-        "config": cfg.model_dump(),
-        "refills": trace.refills,
-        "mean_flow_kg_h_gravimetric": float(trace.mass_flow_kg_h[grav].mean())
-        if grav.any()
-        else None,
-        "std_flow_kg_h_gravimetric": float(trace.mass_flow_kg_h[grav].std())
-        if grav.any()
-        else None,
-        "max_flow_kg_h": float(trace.mass_flow_kg_h.max()),
-        "dispensed_kg": trace.dispensed_kg(),
-    }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps({k: v for k, v in summary.items() if k != "config"}, indent=2))
-    print(f"wrote {out}/trace.csv, feeder.png, summary.json")
+    print(f"wrote {args.out}/trace.csv, feeder.png, summary.json")
     return 0
 
 
 def _feeder_fit_ff(args: argparse.Namespace) -> int:
-    import numpy as np
     import pandas as pd
-    from matplotlib.figure import Figure
 
-    from twin_core.feeder import fit_feed_factor
+    from twin_core.calibration.studies import feed_factor_study
 
     data = pd.read_csv(args.data)
-    for c in (args.weight_col, args.ff_col):
-        if c not in data.columns:
-            raise SystemExit(f"{args.data} lacks column {c!r}; it has {list(data.columns)}")
     try:
-        fit = fit_feed_factor(data[args.weight_col], data[args.ff_col])
-    except (ValueError, RuntimeError) as exc:
-        raise SystemExit(f"fit failed: {exc}") from None
+        fit = feed_factor_study(data, args.weight_col, args.ff_col, args.out)
+    except ValueError as exc:
+        raise SystemExit(f"{args.data}: {exc}") from None
     print(json.dumps(fit.as_dict(), indent=2))
     if args.out:
-        out = _out(args.out)
-        (out / "fit.json").write_text(json.dumps(fit.as_dict(), indent=2))
-        fig = Figure(figsize=(6, 4), layout="constrained")
-        ax = fig.subplots()
-        ax.plot(data[args.weight_col], data[args.ff_col], ".", ms=3, label="data")
-        w = np.linspace(0, float(data[args.weight_col].max()), 200)
-        ax.plot(w, fit.predict(w), "r-", label=f"Eq. (2), R$^2$ = {fit.r2:.3f}")
-        ax.set_xlabel(args.weight_col)
-        ax.set_ylabel(args.ff_col)
-        ax.legend()
-        _save(fig, out / "feed_factor_fit.png")
-        print(f"wrote {out}/fit.json, feed_factor_fit.png")
+        print(f"wrote {args.out}/fit.json, feed_factor_fit.png")
     return 0

@@ -16,6 +16,7 @@ __all__ = [
     "plot_profiles",
     "plot_feeder_trace",
     "plot_prediction_profiles",
+    "plot_feed_factor_fit",
 ]
 
 
@@ -173,4 +174,19 @@ def plot_prediction_profiles(
         ax.axvline(base[f], color="k", ls=":", lw=1)
         ax.set_xlabel(f)
     axes[0].set_ylabel(m.response)
+    return fig
+
+
+def plot_feed_factor_fit(
+    weight: np.ndarray, ff: np.ndarray, fit: object, weight_label: str, ff_label: str
+) -> Figure:
+    """Feed factor against hopper mass with the fitted seed Eq. (2) curve and its R^2."""
+    fig = Figure(figsize=(6, 4), layout="constrained")
+    ax = fig.subplots()
+    ax.plot(weight, ff, ".", ms=3, label="data")
+    w = np.linspace(0, float(np.max(weight)), 200)
+    ax.plot(w, fit.predict(w), "r-", label=f"Eq. (2), R$^2$ = {fit.r2:.3f}")  # type: ignore[attr-defined]
+    ax.set_xlabel(weight_label)
+    ax.set_ylabel(ff_label)
+    ax.legend()
     return fig
