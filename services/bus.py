@@ -449,6 +449,81 @@ def live_services(session: zenoh.Session, line: str = "*", timeout_s: float = 1.
     return sorted(set(names))
 
 
+def collect_health(
+    session: zenoh.Session, line: str = "*", wait_s: float = 1.5
+) -> tuple[list[str], dict[str, ServiceHealth]]:
+    """The services whose liveliness token is alive, and the latest health each published
+    within ``wait_s`` (health that does not validate is skipped)."""
+    health: dict[str, ServiceHealth] = {}
+
+    def on_health(sample: zenoh.Sample) -> None:
+        try:
+            h = ServiceHealth.model_validate_json(sample.payload.to_bytes())
+        except ValueError:
+            return
+        health[h.service] = h
+
+    sub = session.declare_subscriber(
+        keys_mod.services_health(line), zenoh.handlers.Callback(on_health, lambda: None)
+    )
+    alive = live_services(session, line, timeout_s=wait_s)
+    time.sleep(wait_s)
+    sub.undeclare()
+    return alive, health
+
+
+class AlertFeed:
+    """Every OOS alert of a line, and with ``divert`` every divert command, once each (history
+    included, ``HistoryFeed``) to ``emit(key, message)``; :attr:`done` is set after ``count``
+    alerts (0: never)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        line: str,
+        emit: Callable[[str, Any], None],
+        *,
+        divert: bool = False,
+        count: int = 0,
+    ) -> None:
+        from schemas.messages import DivertCommand, OosAlert
+
+        self._emit = emit
+        self._count = count
+        self._seen: set[str] = set()
+        self._lock = threading.Lock()
+        self.alerts = 0
+        self.done = threading.Event()
+        self._feeds = [HistoryFeed(session, keys_mod.oos_alert(line), self._on(OosAlert, True))]
+        if divert:
+            key = keys_mod.divert_command(line)
+            self._feeds.append(HistoryFeed(session, key, self._on(DivertCommand, False)))
+
+    def _on(self, model: type[Message], is_alert: bool) -> Callable[[str, bytes], None]:
+        def cb(key: str, payload: bytes) -> None:
+            try:
+                msg = model.model_validate_json(payload)
+            except ValueError as exc:
+                log.warning("bad message on %s: %s", key, exc)
+                return
+            ident = msg.alert_id if is_alert else msg.command_id
+            with self._lock:
+                if (key, ident) in self._seen:
+                    return
+                self._seen.add((key, ident))
+                self._emit(key, msg)
+                if is_alert:
+                    self.alerts += 1
+                    if self._count and self.alerts >= self._count:
+                        self.done.set()
+
+        return cb
+
+    def undeclare(self) -> None:
+        for f in self._feeds:
+            f.undeclare()
+
+
 @dataclass
 class PingReply:
     """A service's answer to a ping: its health and how many samples it got per key."""

@@ -1,6 +1,7 @@
 """Run-state helpers of the live services: the run's state directory, the idempotent output
 log (outputs already published, so that a restarted service does not publish them again), and
-the one-line text of an OOS alert or divert command (``twin alerts``, ``twin demo``)."""
+the one-line text of an OOS alert or divert command (``twin alerts``, ``twin demo``) and the
+status table of the services (``twin status``)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import os
 from pathlib import Path
 
 from schemas.line import LineSpec
-from schemas.messages import DivertCommand, OosAlert
+from schemas.messages import DivertCommand, OosAlert, ServiceHealth
 
 #: environment variable naming the run's state directory (set by the supervisor)
 STATE_ENV = "TWIN_STATE_DIR"
@@ -56,3 +57,30 @@ def format_alert(msg: OosAlert | DivertCommand) -> str:
         f"DIVERT {msg.command_id}  {msg.action} {msg.t_start_s:.1f}-{msg.t_end_s:.1f} s"
         f"  (t={msg.t:.1f} s)"
     )
+
+
+def status_rows(alive: list[str], health: dict[str, ServiceHealth]) -> dict[str, dict]:
+    """Per service (alive or reporting health): ``alive`` and its latest health fields."""
+    return {
+        n: {"alive": n in alive, **(health[n].model_dump(mode="json") if n in health else {})}
+        for n in sorted(set(alive) | set(health))
+    }
+
+
+def status_table(rows: dict[str, dict]) -> list[str]:
+    """``twin status``'s table of :func:`status_rows`: alive, state, pid, uptime, plant time,
+    counters."""
+    lines = [
+        f"{'service':<10} {'alive':<6} {'state':<9} {'pid':>7} {'up_s':>8} {'plant_t':>9}  counters"
+    ]
+    for n, r in rows.items():
+        alive = "yes" if r["alive"] else "no"
+        if "state" not in r:
+            lines.append(f"{n:<10} {alive:<6}")
+            continue
+        c = " ".join(f"{k}={v}" for k, v in sorted(r["counters"].items()))
+        lines.append(
+            f"{n:<10} {alive:<6} {r['state']:<9} {r['pid']:>7} "
+            f"{r['uptime_s']:>8.1f} {r['t']:>9.1f}  {c}"
+        )
+    return lines

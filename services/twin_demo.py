@@ -204,24 +204,34 @@ def _figure(path: Path, tap: _Tap, spec: LineSpec) -> None:
     fig.savefig(path, dpi=120)
 
 
-def run_full_twin_demo(
-    recording: str | Path | None, out_dir: str | Path, speed: float = 200.0, echo: bool = True
-) -> dict[str, Any]:
-    """Run the live twin on ``recording`` (default: the bundled ``recordings/line1_30min.mcap``)
-    replayed at ``speed`` x real time (``inf``: as fast as the bus takes it); write
-    ``report.json``, ``report.md`` and ``outlet.png`` to ``out_dir``; return the report dict."""
-    from services.recording import BusReplay, read_recording
+def _wait_for_the_twin(tap: _Tap, spec: LineSpec, rec: Any, limit_s: float = 120.0) -> None:
+    """Until the diverter has seen the last plant time, the blender predicted it and the
+    close-loop published every window's finding (or ``limit_s``)."""
+    last_t = rec.messages[-1].t if rec.messages else 0.0
+    n_windows = expected_findings(spec, rec.messages[0].t if rec.messages else 0.0, last_t)
+    t_wait = time.perf_counter()
+    while time.perf_counter() - t_wait < limit_s:
+        h = tap.health.get("oos")
+        if (
+            h is not None
+            and h.t >= last_t
+            and (tap.pred and max(tap.pred) >= last_t - 1)
+            and len(tap.findings) >= n_windows
+        ):
+            return
+        time.sleep(0.1)
+
+
+def _run_twin(
+    rec: Any, spec: LineSpec, speed: float, echo: bool, timings: dict[str, float]
+) -> tuple[_Tap, int, dict[str, Any], dict[str, int], Path]:
+    """Services up, the recording replayed into them, the tap's view; returns (tap, messages
+    replayed, the services' health at the end of the run, exit codes, run directory)."""
+    from services.recording import BusReplay
     from services.supervisor import Supervisor
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    if recording is None:
-        recording = Path(__file__).resolve().parent.parent / "recordings" / "line1_30min.mcap"
     t0 = time.perf_counter()
-    rec = read_recording(recording)
-    spec = spec_for_recording(rec, free_port(), out / "state")
     sup = Supervisor(spec, backoff_s=0.5)
-    timings: dict[str, float] = {}
     tap = None
     try:
         sup.start()
@@ -237,21 +247,9 @@ def run_full_twin_demo(
                 speed=speed if math.isfinite(speed) else 1.0,
                 as_fast_as_possible=not math.isfinite(speed),
             )
-            n_sent = stats.published
             timings["replay_wall_s"] = stats.wall_s
-            last_t = rec.messages[-1].t if rec.messages else 0.0
-            n_windows = expected_findings(spec, rec.messages[0].t if rec.messages else 0.0, last_t)
             t_wait = time.perf_counter()
-            while time.perf_counter() - t_wait < 120:
-                h = tap.health.get("oos")
-                if (
-                    h is not None
-                    and h.t >= last_t
-                    and (tap.pred and max(tap.pred) >= last_t - 1)
-                    and len(tap.findings) >= n_windows
-                ):
-                    break
-                time.sleep(0.1)
+            _wait_for_the_twin(tap, spec, rec)
             timings["drain_s"] = time.perf_counter() - t_wait
             time.sleep(1.5)  # publishers' heartbeat; end-of-stream decisions
         health = {k: v.model_dump(mode="json") for k, v in tap.health.items()}
@@ -259,10 +257,91 @@ def run_full_twin_demo(
         codes = sup.stop()
         if tap is not None:
             tap.close()
+    return tap, stats.published, health, codes, sup.run_dir
+
+
+def prediction_error(measured: dict[float, float], predicted: dict[float, float]) -> dict:
+    """Measured - predicted at the plant times of both: n, bias, RMSE, MAE (% w/w)."""
+    common = sorted(set(measured) & set(predicted))
+    err = np.array([measured[t] - predicted[t] for t in common]) if common else np.array([])
+    return {
+        "n": int(err.size),
+        "bias": float(err.mean()) if err.size else None,
+        "rmse": float(np.sqrt(np.mean(err**2))) if err.size else None,
+        "mae": float(np.mean(np.abs(err))) if err.size else None,
+    }
+
+
+def report_markdown(report: dict[str, Any]) -> str:
+    """``report.md``: the run in a few lines, the alerts, RTD estimates and findings."""
+    t, err = report["timings_s"], report["prediction_error_pct_w_w"]
+    lines = [
+        f"# Live twin run on `{Path(report['recording']).name}`",
+        "",
+        f"- {report['recording_status']}; {report['messages_replayed']} messages, "
+        f"{report['plant_span_s']:.0f} s of plant time replayed in "
+        f"{t['replay_wall_s']:.2f} s ({report['speedup_achieved']:.0f}x real time)",
+        f"- start-up {t['startup_s']:.1f} s, total {t['total_s']:.1f} s",
+        f"- predictions: {report['predictions']}; measured - predicted: "
+        + (f"bias {err['bias']:+.3f}, RMSE {err['rmse']:.3f} % w/w" if err["n"] else "n/a"),
+        f"- OOS alerts: {len(report['alerts'])}; divert commands: "
+        f"{len(report['divert_commands'])}; RTD estimates: {len(report['rtd_estimates'])}; "
+        f"duplicates seen: {report['duplicates_seen']}",
+        "",
+        "| alert | outlet window (s) | peak deviation (% w/w) | cause |",
+        "|---|---|---|---|",
+    ]
+    for a in report["alerts"]:
+        lines.append(
+            f"| {a['alert_id']} | {a['t_start_s']:.1f} - {a['t_end_s']:.1f} | "
+            f"{a['peak_deviation_pct_w_w']:+.3f} | {a['cause']} |"
+        )
+    for r in report["rtd_estimates"]:
+        ps = ", ".join(f"{k}={v:.3g}" for k, v in r["params"].items())
+        lines.append(
+            f"\nRTD estimate (pulse at {r['pulse_t_s']} s): {r['model']} {ps}, "
+            f"mean residence time {r['mean_residence_time_s']:.1f} s"
+        )
+    if report["model_findings"]:
+        lines += [
+            "",
+            "| close-loop window (s) | status | effects found | held-out RMSE before -> after |",
+            "|---|---|---|---|",
+        ]
+    for f in report["model_findings"]:
+        eff = ", ".join(
+            e["label"]
+            + " ("
+            + ", ".join(f"{p['name']}={p['value']:.3g}" for p in e["params"])
+            + ")"
+            for e in f["effects"]
+        )
+        rmse = f["errors"]["before"]["heldout"]["rmse"], f["errors"]["after"]["heldout"]["rmse"]
+        lines.append(
+            f"| {f['t_start_s']:.0f} - {f['t_end_s']:.0f} | {f['status']} | {eff or '-'} | "
+            f"{rmse[0]:.3f} -> {rmse[1]:.3f} |"
+        )
+    return "\n".join([*lines, "", "![outlet](outlet.png)", ""])
+
+
+def run_full_twin_demo(
+    recording: str | Path | None, out_dir: str | Path, speed: float = 200.0, echo: bool = True
+) -> dict[str, Any]:
+    """Run the live twin on ``recording`` (default: the bundled ``recordings/line1_30min.mcap``)
+    replayed at ``speed`` x real time (``inf``: as fast as the bus takes it); write
+    ``report.json``, ``report.md`` and ``outlet.png`` to ``out_dir``; return the report dict."""
+    from services.recording import read_recording
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if recording is None:
+        recording = Path(__file__).resolve().parent.parent / "recordings" / "line1_30min.mcap"
+    t0 = time.perf_counter()
+    rec = read_recording(recording)
+    spec = spec_for_recording(rec, free_port(), out / "state")
+    timings: dict[str, float] = {}
+    tap, n_sent, health, codes, run_dir = _run_twin(rec, spec, speed, echo, timings)
     timings["total_s"] = time.perf_counter() - t0
-    common = sorted(set(tap.meas) & set(tap.pred))
-    err = np.array([tap.meas[t] - tap.pred[t] for t in common]) if common else np.array([])
-    alerts = sorted(tap.alerts.values(), key=lambda a: a.t_start_s)
     span = rec.duration_s
     report = {
         "recording": str(recording),
@@ -276,13 +355,11 @@ def run_full_twin_demo(
         if timings["replay_wall_s"] > 0
         else math.inf,
         "predictions": len(tap.pred),
-        "prediction_error_pct_w_w": {
-            "n": int(err.size),
-            "bias": float(err.mean()) if err.size else None,
-            "rmse": float(np.sqrt(np.mean(err**2))) if err.size else None,
-            "mae": float(np.mean(np.abs(err))) if err.size else None,
-        },
-        "alerts": [a.model_dump(mode="json") for a in alerts],
+        "prediction_error_pct_w_w": prediction_error(tap.meas, tap.pred),
+        "alerts": [
+            a.model_dump(mode="json")
+            for a in sorted(tap.alerts.values(), key=lambda a: a.t_start_s)
+        ],
         "divert_commands": [d.model_dump(mode="json") for d in tap.diverts.values()],
         "rtd_estimates": [r.model_dump(mode="json") for r in tap.rtd],
         "model_findings": [
@@ -292,55 +369,9 @@ def run_full_twin_demo(
         "service_health": health,
         "exit_codes": codes,
         "timings_s": timings,
-        "run_dir": str(sup.run_dir),
+        "run_dir": str(run_dir),
     }
     (out / "report.json").write_text(json.dumps(report, indent=2))
     _figure(out / "outlet.png", tap, spec)
-    lines = [
-        f"# Live twin run on `{Path(str(recording)).name}`",
-        "",
-        f"- {rec.loss_report()}; {n_sent} messages, {span:.0f} s of plant time replayed in "
-        f"{timings['replay_wall_s']:.2f} s ({report['speedup_achieved']:.0f}x real time)",
-        f"- start-up {timings['startup_s']:.1f} s, total {timings['total_s']:.1f} s",
-        f"- predictions: {len(tap.pred)}; measured - predicted: "
-        + (
-            f"bias {report['prediction_error_pct_w_w']['bias']:+.3f}, "
-            f"RMSE {report['prediction_error_pct_w_w']['rmse']:.3f} % w/w"
-            if err.size
-            else "n/a"
-        ),
-        f"- OOS alerts: {len(alerts)}; divert commands: {len(tap.diverts)}; "
-        f"RTD estimates: {len(tap.rtd)}; duplicates seen: {tap.duplicates}",
-        "",
-        "| alert | outlet window (s) | peak deviation (% w/w) | cause |",
-        "|---|---|---|---|",
-    ]
-    for a in alerts:
-        lines.append(
-            f"| {a.alert_id} | {a.t_start_s:.1f} - {a.t_end_s:.1f} | "
-            f"{a.peak_deviation_pct_w_w:+.3f} | {a.cause} |"
-        )
-    for r in tap.rtd:
-        ps = ", ".join(f"{k}={v:.3g}" for k, v in r.params.items())
-        lines.append(
-            f"\nRTD estimate (pulse at {r.pulse_t_s} s): {r.model} {ps}, "
-            f"mean residence time {r.mean_residence_time_s:.1f} s"
-        )
-    if tap.findings:
-        lines += [
-            "",
-            "| close-loop window (s) | status | effects found | held-out RMSE before -> after |",
-            "|---|---|---|---|",
-        ]
-    for f in sorted(tap.findings.values(), key=lambda f: f.t):
-        eff = ", ".join(
-            e.label + " (" + ", ".join(f"{p.name}={p.value:.3g}" for p in e.params) + ")"
-            for e in f.effects
-        )
-        lines.append(
-            f"| {f.t_start_s:.0f} - {f.t_end_s:.0f} | {f.status} | {eff or '-'} | "
-            f"{f.errors.before.heldout.rmse:.3f} -> {f.errors.after.heldout.rmse:.3f} |"
-        )
-    lines += ["", "![outlet](outlet.png)", ""]
-    (out / "report.md").write_text("\n".join(lines))
+    (out / "report.md").write_text(report_markdown(report))
     return report

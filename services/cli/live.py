@@ -60,112 +60,42 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    import zenoh
-
-    from schemas import keys
-    from schemas.messages import ServiceHealth
-    from services.bus import live_services, open_session
+    from services.bus import collect_health, open_session
+    from services.common import status_rows, status_table
 
     spec = _spec(args)
-    health: dict[str, ServiceHealth] = {}
-
-    def on_health(sample: zenoh.Sample) -> None:
-        try:
-            h = ServiceHealth.model_validate_json(sample.payload.to_bytes())
-        except ValueError:
-            return
-        health[h.service] = h
-
     with open_session(spec.client_bus()) as s:
-        sub = s.declare_subscriber(
-            keys.services_health(spec.name), zenoh.handlers.Callback(on_health, lambda: None)
-        )
-        alive = live_services(s, spec.name, timeout_s=args.timeout)
-        time.sleep(args.timeout)
-        sub.undeclare()
-    rows = sorted(set(alive) | set(health))
+        alive, health = collect_health(s, spec.name, args.timeout)
+    rows = status_rows(alive, health)
     if args.json:
-        print(
-            json.dumps(
-                {
-                    n: {
-                        "alive": n in alive,
-                        **(health[n].model_dump(mode="json") if n in health else {}),
-                    }
-                    for n in rows
-                },
-                indent=2,
-            )
-        )
+        print(json.dumps(rows, indent=2))
         return 0 if alive else 1
     if not rows:
         print(f"no service of line {spec.name} answers on {', '.join(spec.bus.listen)}")
         return 1
-    print(
-        f"{'service':<10} {'alive':<6} {'state':<9} {'pid':>7} {'up_s':>8} {'plant_t':>9}  counters"
-    )
-    for n in rows:
-        h = health.get(n)
-        if h is None:
-            print(f"{n:<10} {'yes' if n in alive else 'no':<6}")
-            continue
-        c = " ".join(f"{k}={v}" for k, v in sorted(h.counters.items()))
-        print(
-            f"{n:<10} {'yes' if n in alive else 'no':<6} {h.state:<9} {h.pid:>7} "
-            f"{h.uptime_s:>8.1f} {h.t:>9.1f}  {c}"
-        )
+    print("\n".join(status_table(rows)))
     return 0
 
 
 def cmd_alerts(args: argparse.Namespace) -> int:
-    from schemas import keys
-    from schemas.messages import DivertCommand, OosAlert
-    from services.bus import HistoryFeed, open_session
+    from services.bus import AlertFeed, open_session
     from services.common import format_alert
 
     spec = _spec(args)
-    seen: set[str] = set()
-    lock = threading.Lock()
-    count = [0]
-    done = threading.Event()
 
-    def printer(model):
-        def cb(key: str, payload: bytes) -> None:
-            try:
-                msg = model.model_validate_json(payload)
-            except ValueError as exc:
-                log.warning("bad message on %s: %s", key, exc)
-                return
-            ident = getattr(msg, "alert_id", None) if model is OosAlert else msg.command_id
-            with lock:
-                if ident in seen:
-                    return
-                seen.add(ident)
-                if args.json:
-                    print(json.dumps({"key": key, **msg.model_dump(mode="json")}))
-                else:
-                    print(format_alert(msg), flush=True)
-                if model is OosAlert:
-                    count[0] += 1
-                    if args.count and count[0] >= args.count:
-                        done.set()
-
-        return cb
+    def emit(key: str, msg: Any) -> None:
+        if args.json:
+            print(json.dumps({"key": key, **msg.model_dump(mode="json")}), flush=True)
+        else:
+            print(format_alert(msg), flush=True)
 
     with open_session(spec.client_bus()) as s:
-        subs = []
-        for key, model in ((keys.oos_alert(spec.name), OosAlert),):
-            subs.append(HistoryFeed(s, key, printer(model)))
-        if args.divert:
-            subs.append(HistoryFeed(s, keys.divert_command(spec.name), printer(DivertCommand)))
-        if args.timeout:
-            done.wait(args.timeout)
-        elif args.count:
-            done.wait()
+        feed = AlertFeed(s, spec.name, emit, divert=args.divert, count=args.count)
+        if args.timeout or args.count:
+            feed.done.wait(args.timeout or None)
         else:
             _wait_for_signal()
-        for sub in subs:
-            sub.undeclare()
+        feed.undeclare()
     return 0
 
 
