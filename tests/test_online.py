@@ -284,6 +284,34 @@ def test_tracer_pulse_detected_with_seed_noise():
     assert len(segs2) == 1 and segs2[0].announced and segs2[0].t[0] == t_pulse
 
 
+@pytest.mark.parametrize("late", [1, 3, 10])
+def test_tracer_announced_a_few_samples_late_gives_the_in_time_segment(late):
+    """An announcement that reaches the detector ``late`` samples after the injection (another
+    route than the NIR samples) gives the segment, baseline and noise of an in-time one: the
+    baseline is the one before the injection."""
+    rng = np.random.default_rng(7)
+    t = np.arange(0, 900, DT)
+    t_pulse = 600.0
+    c = 4.0 / E_SEED.max() * ad_open(t - t_pulse, 11.92, 16.37, 7.67) - 0.05
+    c += rng.normal(0, 0.13, t.size)
+
+    def segment(delay: int):
+        det = TracerPulseDetector(DT)
+        i_pulse = int(np.argmax(t >= t_pulse))
+        for i, (ti, ci) in enumerate(zip(t, c)):
+            if i == i_pulse + delay:
+                det.announce(t_pulse)
+            if (s := det.push(ti, ci)) is not None:
+                return s
+        return None
+
+    ref, got = segment(0), segment(late)
+    assert ref.announced and got.announced and ref.t[0] == t_pulse
+    assert (got.baseline, got.sigma) == (ref.baseline, ref.sigma)
+    np.testing.assert_array_equal(got.t, ref.t)
+    np.testing.assert_array_equal(got.c, ref.c)
+
+
 def test_tracer_no_false_pulse_on_noise():
     rng = np.random.default_rng(6)
     det = TracerPulseDetector(DT)

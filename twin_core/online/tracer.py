@@ -5,7 +5,9 @@ its level and noise robustly (median, and 1.4826 x median absolute deviation: th
 estimator of a normal standard deviation, Rousseeuw & Croux 1993). A pulse starts when
 ``n_on`` consecutive samples exceed ``baseline + k_on * sigma``; the segment handed to the RTD
 fit begins ``pre_s`` before that (the rise) or at the announced injection time when an event
-told it (:meth:`TracerPulseDetector.announce`). It ends when, after the peak, ``n_off``
+told it (:meth:`TracerPulseDetector.announce`; the baseline is then the one before the
+injection, so an announcement that arrives a few samples after the injection's samples gives the
+segment of an in-time one). It ends when, after the peak, ``n_off``
 consecutive samples stay below ``baseline + k_off * sigma`` (the seed's mu +/- 3 sigma
 truncation level, chapter 6), plus ``tail_s`` of tail, or after ``max_duration_s``.
 """
@@ -83,18 +85,21 @@ class TracerPulseDetector:
         for name in ("baseline_s", "pre_s", "tail_s", "max_duration_s"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
-        self._base = deque(maxlen=max(3, int(round(self.baseline_s / self.dt))))
+        self._n_base = max(3, int(round(self.baseline_s / self.dt)))
+        # (t, c) of the baseline, with room for the samples an announcement may come after
+        self._base = deque(maxlen=self._n_base + int(round(self.pre_s / self.dt)) + self.n_on)
         self._pre = deque(maxlen=max(1, int(round(self.pre_s / self.dt)) + self.n_on))
 
     @property
     def in_pulse(self) -> bool:
         return self._state != "idle"
 
-    def baseline(self) -> tuple[float, float]:
-        """Current baseline level and noise estimate (median, 1.4826 MAD floored at min_sigma)."""
-        if len(self._base) < 3:
+    def baseline(self, before: float = math.inf) -> tuple[float, float]:
+        """Baseline level and noise estimate (median, 1.4826 MAD floored at min_sigma) of the
+        last ``baseline_s`` of idle samples before plant time ``before``."""
+        b = np.array([c for t, c in self._base if t < before][-self._n_base :], dtype=float)
+        if b.size < 3:
             return self._level
-        b = np.fromiter(self._base, float)
         med = float(np.median(b))
         sig = max(1.4826 * float(np.median(np.abs(b - med))), self.min_sigma)
         return med, sig
@@ -103,7 +108,7 @@ class TracerPulseDetector:
         """An event says a pulse was injected at ``t_pulse``: start a segment there."""
         if self._state != "idle":
             return
-        self._level = self.baseline()
+        self._level = self.baseline(before=t_pulse)
         self._state = "pulse"
         self._announced = True
         self._t0 = float(t_pulse)
@@ -118,7 +123,7 @@ class TracerPulseDetector:
         if self._state == "idle":
             self._pre.append((t, c))
             base, sig = self.baseline()
-            ready = len(self._base) >= max(3, self._base.maxlen // 2)
+            ready = min(len(self._base), self._n_base) >= max(3, self._n_base // 2)
             if self.auto and ready and c > base + self.k_on * sig:
                 self._run += 1
                 if self._run >= self.n_on:
@@ -133,7 +138,7 @@ class TracerPulseDetector:
                     self._run = 0
             else:
                 self._run = 0
-                self._base.append(c)
+                self._base.append((t, c))
             return None
         self._seg_t.append(t)
         self._seg_c.append(c)
