@@ -69,16 +69,6 @@ def _load_table(spec: str):
     return pd.read_csv(path)
 
 
-def _out(path: str) -> Path:
-    p = Path(path)
-    p.mkdir(parents=True, exist_ok=True)
-    return p
-
-
-def _save(fig: Any, path: Path) -> None:
-    fig.savefig(path, dpi=130)
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("calibrate", help="DEM bulk calibration: DSD, response surfaces, inverse")
     csub = p.add_subparsers(dest="calibrate_command", metavar="ACTION")

@@ -113,16 +113,14 @@ def _range(spec: str, name: str) -> np.ndarray:
         raise ValueError(f"{name} must be start:stop:count, got {spec!r}") from None
 
 
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    raise TypeError(type(o))
+def _dumps(obj: dict, **kw) -> str:
+    from twin_core.rtd.analysis import json_default
+
+    return json.dumps(obj, default=json_default, **kw)
 
 
 def _write_json(path: Path, obj: dict) -> None:
-    path.write_text(json.dumps(obj, indent=2, default=_json_default))
+    path.write_text(_dumps(obj, indent=2))
 
 
 def _fail(exc: Exception) -> int:
@@ -145,7 +143,7 @@ def _analyze(args: argparse.Namespace) -> int:
     _write_json(out / "report.json", {"file": str(args.file), **a.report})
     fig = plot_profile(prof.t, prof.c, a.processed, a.e, prof.conc_unit, a.outliers, a.fits)
     fig.savefig(out / "profile.png", dpi=120)
-    print(json.dumps({"out": str(out), "moments": a.report["moments"]}, default=_json_default))
+    print(_dumps({"out": str(out), "moments": a.report["moments"]}))
     return 0
 
 
@@ -177,7 +175,7 @@ def _funnel(args: argparse.Namespace) -> int:
         fig = plot_funnel_difference(*funnels.values())
         fig.savefig(out / "funnel_difference.png", dpi=120)
     _write_json(out / "funnel.json", res)
-    print(json.dumps(res, default=_json_default))
+    print(_dumps(res))
     return 0
 
 
@@ -205,5 +203,5 @@ def _reproduce(args: argparse.Namespace) -> int:
         meta = reproduce_chapter6(args.out, args.seed, args.repeats, sys.stderr.isatty())
     except ValueError as exc:
         return _fail(exc)
-    print(json.dumps(meta, default=_json_default))
+    print(_dumps(meta))
     return 0

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ProfileAnalysis", "analyze_profile", "profile_funnels"]
+__all__ = ["ProfileAnalysis", "analyze_profile", "json_default", "profile_funnels"]
 
 
 @dataclass
@@ -143,3 +143,12 @@ def profile_funnels(
     if len(funnels) == 2:
         res["comparison"] = compare_funnels(*funnels.values())
     return funnels, res
+
+
+def json_default(o: object) -> object:
+    """``json.dumps`` fallback for the numpy values of the RTD reports (arrays, scalars)."""
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(type(o))

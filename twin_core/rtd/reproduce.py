@@ -321,6 +321,7 @@ def reproduce_chapter6(
     from tqdm import tqdm
 
     from twin_core.rtd import plots
+    from twin_core.rtd.analysis import json_default
     from twin_core.rtd.synthetic import CampaignConfig, generate_campaign
 
     if repeats < 2:
@@ -371,13 +372,5 @@ def reproduce_chapter6(
         "anova_p": s2.attrs.get("anova_p", {}),
         "files": sorted(p.name for p in out.iterdir()),
     }
-    (out / "reproduce.json").write_text(json.dumps(meta, indent=2, default=_json_default))
+    (out / "reproduce.json").write_text(json.dumps(meta, indent=2, default=json_default))
     return meta
-
-
-def _json_default(o: object) -> object:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    raise TypeError(type(o))
