@@ -27,7 +27,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 from twin_core.plant.config import TracerPulse
 from twin_core.plant.model import pulse_bin_flow
@@ -59,8 +59,7 @@ def composition_pct(flows: Mapping[str, float], components: Mapping[str, str]) -
     return out
 
 
-@dataclass(frozen=True)
-class FeederSample:
+class FeederSample(NamedTuple):
     """What one feeder reported for one tick: mass flow (kg/h), its refill flag (the one source
     of refill state), screw speed (rpm, NaN if not reported)."""
 
@@ -232,6 +231,9 @@ class TracerInjector:
 
     def apply(self, t: float, mass_kg_h: dict[str, float]) -> dict[str, float]:
         """Add the tracer flows (kg/h) of tick ``t`` to ``mass_kg_h`` (in place; returned)."""
+        self._last_tick = t
+        if not self._pulses and not self._carry:
+            return mass_kg_h
         hi = t + 0.5 * self.dt
         keep = []
         for comp, a, b, rate in self._pulses:
@@ -244,12 +246,10 @@ class TracerInjector:
         for comp, q in self._carry.items():
             mass_kg_h[comp] = mass_kg_h.get(comp, 0.0) + q
         self._carry.clear()
-        self._last_tick = t
         return mass_kg_h
 
 
-@dataclass
-class InletTick:
+class InletTick(NamedTuple):
     """One released inlet tick: every feeder's sample and the tracer mass flows (kg/h) per
     component that enter in it."""
 
@@ -318,10 +318,14 @@ class InletStream:
 
     def push(self, feeder: str, t: float, sample: FeederSample) -> list[InletTick]:
         """One feeder sample; return the ticks released (see the class docstring)."""
-        now = self.clock()
-        for tt, row in self._aligner.push(feeder, t, sample):
-            self._held.append((tt, row, now))
-        return self.release()
+        ticks = self._aligner.push(feeder, t, sample)
+        if not ticks:
+            return []
+        if self.hold_s <= 0 and self.grace_s <= 0 and not self._held:  # nothing to wait for
+            return [InletTick(tt, row, self._tracer.apply(tt, {})) for tt, row in ticks]
+        now = self.clock() if self.grace_s > 0 else 0.0
+        self._held.extend((tt, row, now) for tt, row in ticks)
+        return self.release(now)
 
     def add_pulse(self, pulse: TracerPulse, carry: bool = True) -> dict[float, float] | None:
         """Announce a tracer pulse; the same pulse again (history after a restart) is ignored
@@ -337,11 +341,12 @@ class InletStream:
             return {}
         return late
 
-    def release(self) -> list[InletTick]:
+    def release(self, now: float | None = None) -> list[InletTick]:
         """Release the held ticks that are ``hold_s`` of plant time older than the newest and
-        have waited ``grace_s`` of wall time."""
+        have waited ``grace_s`` of wall time (``now``: the wall clock, read when not given)."""
         out: list[InletTick] = []
-        now = self.clock()
+        if now is None:
+            now = self.clock() if self.grace_s > 0 else 0.0
         while self._held:
             t0, _, arrived = self._held[0]
             if self._held[-1][0] - t0 < self.hold_s - 1e-9:
