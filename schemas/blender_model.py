@@ -3,18 +3,18 @@
 One periodic section of the blender as a conserving compartment network (compartments,
 holdups, sparse flow triplets with a flag for the flows through the periodic face, the
 inlet/outlet compartments of that face with their forward flows) plus the number of sections
-in series, the section RTD form and the throughput basis.  The blender service loads it from JSON and calls :meth:`BlenderModel.predict` for the
-outlet concentration or :meth:`BlenderModel.impulse_response` for E(t), like an RTD model.
-The numerics live in ``twin_core.compartment`` (imported when a method is first called).
+in series, the section RTD form and the throughput basis. Pure data with its validators: the
+numerics that use it (E(t), outlet prediction, RSD profile, flow scale for a blade speed) are
+the ``blender_model_*`` functions of ``twin_core.compartment.blender_model``.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SCHEMA_VERSION = "1"
 
@@ -62,9 +62,6 @@ class BlenderModel(BaseModel):
     k_b_per_s: float | None = None
     source: str = ""
     notes: dict[str, float | str] = Field(default_factory=dict)
-
-    _cdf_cache: dict = PrivateAttr(default_factory=dict)
-    _section: Any = PrivateAttr(default=None)
 
     @model_validator(mode="after")
     def _check(self) -> BlenderModel:
@@ -148,51 +145,7 @@ class BlenderModel(BaseModel):
         r = np.asarray(self.flow_kg_s, dtype=float)
         return np.bincount(dst, weights=r, minlength=n) - np.bincount(src, weights=r, minlength=n)
 
-    def flow_scale_for_rpm(self, rpm: np.ndarray) -> np.ndarray:
-        """Flow scale s(rpm) for :meth:`predict`: linear interpolation of ``rpm_flow_scale``
-        with (rpm_basis, 1) and (0, 0); proportional to rpm / rpm_basis beyond the last point
-        (and everywhere when no points are stored)."""
-        if self.rpm_basis is None:
-            raise ValueError("flow_scale_for_rpm needs rpm_basis in the model")
-        rpm = np.asarray(rpm, dtype=float)
-        if np.any(rpm < 0) or not np.all(np.isfinite(rpm)):
-            raise ValueError("rpm must be finite and >= 0")
-        pts = {0.0: 0.0, float(self.rpm_basis): 1.0}
-        for r, sc in self.rpm_flow_scale or []:
-            pts[float(r)] = float(sc)
-        x = np.array(sorted(pts))
-        y = np.array([pts[v] for v in x])
-        out = np.interp(rpm, x, y)
-        beyond = rpm > x[-1]
-        out[beyond] = y[-1] * rpm[beyond] / x[-1]
-        return out
-
-    # ------------------------------------------------------------------ numerics
-    def periodic_network(self) -> Any:
-        """The periodic section as a ``twin_core.compartment.network.CompartmentNetwork``."""
-        from twin_core.compartment.network import CompartmentNetwork
-
-        return CompartmentNetwork(
-            holdup=np.asarray(self.holdup_kg),
-            src=np.asarray(self.flow_src, dtype=np.int64),
-            dst=np.asarray(self.flow_dst, dtype=np.int64),
-            rate=np.asarray(self.flow_kg_s),
-            wrap=np.asarray(self.flow_wrap, dtype=bool),
-            slice_index=np.asarray(self.compartment_slice, dtype=np.int64),
-        )
-
-    def section_network(self) -> Any:
-        """The section whose impulse response is the section RTD (``section_form``)."""
-        if self._section is None:
-            from twin_core.compartment.network import first_passage_network, open_section
-
-            per = self.periodic_network()
-            if self.section_form == "transit":
-                self._section = first_passage_network(per, self.n_upstream)
-            else:
-                self._section = open_section(per)
-        return self._section
-
+    # ------------------------------------------------------------------ derived data
     @property
     def flowing_holdup_kg(self) -> float:
         """Holdup of one section in compartments with any flow (stagnant ones excluded)."""
@@ -209,58 +162,6 @@ class BlenderModel(BaseModel):
     @property
     def holdup_total_kg(self) -> float:
         return self.n_sections * sum(self.holdup_kg)
-
-    def impulse_response(self, t: np.ndarray, n_sections: int | None = None) -> np.ndarray:
-        """E(t) (1/s) of the whole blender (or ``n_sections``) on a uniform grid from 0."""
-        from twin_core.compartment.blender import blender_rtd
-
-        n = self.n_sections if n_sections is None else n_sections
-        return blender_rtd(self.section_network(), n, np.asarray(t, dtype=float))
-
-    def predict(
-        self,
-        t: np.ndarray,
-        inlet_concentration: np.ndarray,
-        flow_scale: np.ndarray | None = None,
-        initial_concentration: float | None = None,
-    ) -> np.ndarray:
-        """Outlet concentration on the uniform grid t for a piecewise-constant inlet
-        concentration (same units out as in).
-
-        ``flow_scale`` (len(t)) scales every flow relative to the basis (rpm / rpm_basis or
-        throughput / throughput_kg_h with the holdup fixed); ``initial_concentration`` is the
-        blender content at t[0] (default: steady state at inlet_concentration[0]).
-        """
-        from twin_core.compartment.blender import blender_cdf_increments, predict_outlet
-
-        t = np.asarray(t, dtype=float)
-        sec = self.section_network()
-        cdf = None
-        if flow_scale is None and t.size >= 2:
-            key = (round(float(t[1] - t[0]), 12), t.size)
-            cdf = self._cdf_cache.get(key)
-            if cdf is None:
-                cdf = blender_cdf_increments(sec, self.n_sections, float(t[1] - t[0]), t.size)
-                self._cdf_cache.clear()
-                self._cdf_cache[key] = cdf
-        return predict_outlet(
-            sec,
-            self.n_sections,
-            t,
-            np.asarray(inlet_concentration, dtype=float),
-            flow_scale=flow_scale,
-            initial=initial_concentration,
-            cdf=cdf,
-        )
-
-    def rsd_profile(self, x_m: np.ndarray) -> np.ndarray:
-        """RSD along the blender axis by Eq. (10) (needs rsd_ss, rsd_0, k_b_per_s)."""
-        from twin_core.compartment.blender import blender_rsd_profile
-
-        if self.rsd_ss is None or self.rsd_0 is None or self.k_b_per_s is None:
-            raise ValueError("rsd_profile needs rsd_ss, rsd_0 and k_b_per_s in the model")
-        v_x = self.section_length_m * (self.throughput_kg_h / 3600.0) / self.flowing_holdup_kg
-        return blender_rsd_profile(x_m, self.rsd_ss, self.rsd_0, self.k_b_per_s, v_x)
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path) -> Path:

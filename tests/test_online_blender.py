@@ -103,11 +103,12 @@ def test_a_tracer_pulse_announced_twice_counts_once():
 
 
 def test_a_compartment_network_export_matches_its_predict(tmp_path, capsys):
-    """Peer code: schemas.blender_model.BlenderModel.predict (compartment network of
-    twin_core.compartment) on the inlet composition; the blender core with ``kind: compartment``
+    """Peer code: twin_core.compartment.blender_model_predict (the compartment network of a
+    ``schemas.blender_model.BlenderModel``) on the inlet composition; the blender core with ``kind: compartment``
     uses the same export through its impulse response."""
     from schemas.blender_model import BlenderModel
     from services.cli.main import main
+    from twin_core.compartment import blender_model_predict
 
     fields, model = tmp_path / "f.npz", tmp_path / "m.json"
     assert main(["compartment", "synthetic", str(fields), "--shape", "5", "7", "7"]) == 0
@@ -128,7 +129,7 @@ def test_a_compartment_network_export_matches_its_predict(tmp_path, capsys):
             for tt, conc in bp.push(fid, float(ti), float(q)):
                 got[tt] = conc["api"]
     pred = np.array([got[float(x)] for x in t])
-    ref = bm.predict(t, 100 * api / 12.0)
+    ref = blender_model_predict(bm, t, 100 * api / 12.0)
     assert pred.max() > 14.0  # the step reached the outlet
     np.testing.assert_allclose(pred, ref, atol=0.1)
 

@@ -1,7 +1,8 @@
 """Multi-zonal compartment model of the blender built from DEM grid fields (chapter 5).
 
 Fields (npz) -> zones -> compartments -> conserving flows -> linear network -> RTD / RSD ->
-whole blender (n sections) -> serializable :class:`schemas.blender_model.BlenderModel`.
+whole blender (n sections) -> serializable :class:`schemas.blender_model.BlenderModel`, whose
+numerics (E(t), outlet prediction, RSD profile) are the ``blender_model_*`` functions.
 
 The names below are imported from their submodules on first use (PEP 562), so that loading a
 blender model for prediction does not import the zoning and fitting machinery.
@@ -18,6 +19,12 @@ _EXPORTS: dict[str, str] = {
     "fit_rsd_decay": "blender",
     "predict_outlet": "blender",
     "rsd_decay": "blender",
+    "blender_model_flow_scale": "blender_model",
+    "blender_model_network": "blender_model",
+    "blender_model_predict": "blender_model",
+    "blender_model_rsd_profile": "blender_model",
+    "blender_model_rtd": "blender_model",
+    "blender_model_section": "blender_model",
     "blender_model_fields": "export",
     "to_blender_model": "export",
     "GridFields": "fields",

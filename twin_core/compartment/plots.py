@@ -10,6 +10,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import BoundaryNorm, ListedColormap
 from matplotlib.figure import Figure
 
+from twin_core.compartment.blender_model import blender_model_rsd_profile, blender_model_rtd
 from twin_core.compartment.build import BuildResult
 
 __all__ = ["build_figures", "plot_simulation"]
@@ -120,7 +121,7 @@ def plot_rtd(r: BuildResult) -> Figure:
     bm = r.blender
     tb = np.linspace(0.0, 3.0 * bm.mean_residence_time_s, 1501)
     for k in sorted({1, 2, 4, bm.n_sections}):
-        axes[1].plot(tb, bm.impulse_response(tb, n_sections=k), label=f"{k} sections")
+        axes[1].plot(tb, blender_model_rtd(bm, tb, n_sections=k), label=f"{k} sections")
     axes[1].set_xlabel("t (s)")
     axes[1].set_title("sections in series (Eq. 8-9)")
     axes[1].legend(fontsize=8)
@@ -150,7 +151,7 @@ def plot_rsd(r: BuildResult) -> Figure:
     axes[0].legend(fontsize=8)
     bm = r.blender
     x = np.linspace(0.0, bm.n_sections * bm.section_length_m, 200)
-    axes[1].plot(x, bm.rsd_profile(x), "r-")
+    axes[1].plot(x, blender_model_rsd_profile(bm, x), "r-")
     axes[1].set_xlabel("x along the blender (m)")
     axes[1].set_ylabel("RSD")
     axes[1].set_title("RSD along the blender (Eq. 10)")

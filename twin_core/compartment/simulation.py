@@ -1,7 +1,7 @@
 """What-if runs of an exported blender model (``twin compartment simulate``): an inlet signal of
 a baseline with an optional step, tracer pulse and flow change, through the model.
 
-The outlet is ``BlenderModel.predict`` (the whole blender's RTD convolution, Eq. 8-9 of seed
+The outlet is ``blender_model_predict`` (the whole blender's RTD convolution, Eq. 8-9 of seed
 chapter 5, with the flows scaled after a change of throughput or blade speed: the rpm law of the
 model when a blade speed is given).
 """
@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from twin_core.compartment.blender_model import blender_model_flow_scale, blender_model_predict
 
 __all__ = ["InletScenario", "simulate_blender"]
 
@@ -51,8 +53,8 @@ def simulate_blender(bm, s: InletScenario) -> tuple[np.ndarray, np.ndarray, np.n
     if s.scale_at is not None:
         to = s.scale_to
         if s.rpm_to is not None:
-            to = float(bm.flow_scale_for_rpm(np.array([s.rpm_to]))[0])
+            to = float(blender_model_flow_scale(bm, np.array([s.rpm_to]))[0])
         if to < 0:
             raise ValueError(f"scale_to must be >= 0, got {to}")
         scale = np.where(t >= s.scale_at, to, 1.0)
-    return t, u, bm.predict(t, u, flow_scale=scale)
+    return t, u, blender_model_predict(bm, t, u, flow_scale=scale)

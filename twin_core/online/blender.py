@@ -55,9 +55,10 @@ def declared_kernel(spec: LineSpec) -> np.ndarray:
     if b.kind == "rtd":
         return model_e(b.model, dict(b.params), t)
     from schemas.blender_model import BlenderModel
+    from twin_core.compartment.blender_model import blender_model_rtd
 
     model = BlenderModel.model_validate_json(Path(b.export_path).read_text())
-    return np.asarray(model.impulse_response(t), dtype=float)
+    return np.asarray(blender_model_rtd(model, t), dtype=float)
 
 
 class BlenderKernel:
