@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from schemas.line import NIRNoise
 from twin_core.closeloop import IdentifyOptions, RunData, close_loop
 from twin_core.closeloop.scenarios import EFFECT_MAGNITUDES, effect_spec, standard_scenario
-from twin_core.plant import LineModel, NIRNoise, simulate_line
+from twin_core.plant import LineModel, simulate_line
 
 FIELDS = [
     "truth",

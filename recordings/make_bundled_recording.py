@@ -32,7 +32,7 @@ import numpy as np
 from schemas import keys
 from schemas.messages import Event, FeederFlow, MeasuredConcentration
 from services.recording import McapRecorder
-from twin_core.plant import line_config_to_dict, seed_line, simulate_line
+from twin_core.plant import seed_line, simulate_line
 
 LINE = "line1"
 SEED = 2026
@@ -72,7 +72,7 @@ def build_messages(seed: int = SEED) -> tuple[list[tuple[str, object]], dict, di
         seqs[key] = seq + 1
         rows.append((t, order, key, model(t=t, seq=seq, **fields)))
 
-    specs = {f.name: f for f in cfg.feeders}
+    specs = {f.id: f for f in cfg.feeders}
     for i, t_grid in enumerate(run.t_s):
         t = float(round(t_grid, 6))
         for j, (name, rec) in enumerate(run.feeders.items()):
@@ -102,30 +102,21 @@ def build_messages(seed: int = SEED) -> tuple[list[tuple[str, object]], dict, di
                 quality="good",
             )
     for ev in run.events:
-        if ev.kind == "tracer_pulse":
-            key = keys.event(LINE, "tracer", ev.source)
-            fields = dict(
-                component=ev.source,
-                mass_kg=ev.detail["mass_kg"],
-                duration_s=ev.detail["duration_s"],
-                detail=f"{ev.detail['mass_kg'] * 1000:g} g {ev.source} tracer pulse",
-            )
-        else:
-            key = keys.event(LINE, "feeder", ev.source)
-            fields = dict(component=run.feeders[ev.source].component, detail="hopper refill")
-        add(float(round(ev.t_s, 6)), 5, key, Event, kind=ev.kind, source=ev.source, **fields)
+        unit = "tracer" if ev.kind == "tracer_pulse" else "feeder"
+        fields = ev.model_dump(exclude={"t", "seq"})
+        add(float(round(ev.t, 6)), 5, keys.event(LINE, unit, ev.source), Event, **fields)
     rows.sort(key=lambda r: (r[0], r[1]))
     provenance = {
         "generator": "recordings/make_bundled_recording.py (twin_core.plant.simulate_line)",
         "seed": str(seed),
         "duration_s": str(DURATION_S),
         "dt_s": str(DT_S),
-        "line_config": json.dumps(line_config_to_dict(cfg)),
+        "line_config": json.dumps(cfg.line_dict()),
     }
     truth = {
         "effects": json.dumps(run.effects),
         "outlier_times_s": json.dumps([float(x) for x in run.t_s[run.outliers]]),
-        "events": json.dumps([e.to_dict() for e in run.events]),
+        "events": json.dumps([e.model_dump(mode="json") for e in run.events]),
     }
     return [(k, m) for _, _, k, m in rows], provenance, truth
 

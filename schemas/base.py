@@ -18,7 +18,14 @@ import math
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Self
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    ValidationError,
+)
 
 #: characters allowed in an identifier (and in one key-expression segment)
 IDENT_PATTERN = r"^[A-Za-z0-9_.\-]+$"
@@ -61,6 +68,21 @@ def read_mapping(path: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ValueError(f"{p} must hold a mapping, got {type(data).__name__}")
     return data
+
+
+def validation_summary(exc: ValidationError) -> str:
+    """A validation error on one line: ``field.path: message (got value)`` for every rejected
+    field, joined by ``; `` (for command-line errors)."""
+    parts = []
+    for e in exc.errors(include_url=False):
+        loc = ".".join(str(p) for p in e["loc"]) or "<root>"
+        if e["type"] == "value_error":  # a validator's message names the value itself
+            parts.append(f"{loc}: {e['msg'].removeprefix('Value error, ')}")
+        elif e["type"] == "missing":
+            parts.append(f"{loc}: {e['msg']}")
+        else:
+            parts.append(f"{loc}: {e['msg']} (got {e['input']!r:.80})")
+    return "; ".join(parts)
 
 
 class StrictModel(BaseModel):

@@ -1,12 +1,19 @@
-"""Line configuration of the live twin: one YAML/JSON file for ``twin up`` and the services.
+"""The line configuration: one pydantic model for the line, its feeders, blender and sensor.
 
-It declares the line (feeders, blender model, NIR sensor: the same fields as
-``twin_core.plant.LineConfig``, which :meth:`LineSpec.plant_config` builds), the specification
-(target and limits per component), the OOS settings (debounce, deadband, inlet detection,
-lot-boundary quantiles), the bus (``schemas.bus_config.BusConfig``: endpoints and security) and
-which services ``twin up`` starts. Example: ``services/configs/line1.yaml``.
+- :class:`LineConfig` is the declared line: feeders (:class:`FeederLine`, each with the
+  overrides of its loss-in-weight simulator, ``schemas.feeder.FeederConfig``), the blender model
+  (:class:`BlenderModelConfig`: an RTD model of ``twin_core.rtd.models`` or a compartment
+  export), the NIR sensor and its noise (:class:`SensorLine`, :class:`NIRNoise`) and planned
+  tracer pulses (:class:`TracerPulse`). The plant simulator, the declared line model and the
+  close-loop (``twin_core.plant``, ``twin_core.closeloop``) take it as it is.
+- :class:`LineSpec` is the live twin's configuration file: a :class:`LineConfig` (it *is* one)
+  plus the specification (target and limits per component), the OOS, RTD and close-loop
+  settings, the bus (``schemas.bus_config.BusConfig``: endpoints and security) and which
+  services ``twin up`` starts. Example: ``services/configs/line1.yaml``. It is the one file
+  format of a line (``twin up``, ``twin close-loop --config``).
 
-Every field is validated; a bad value raises ``pydantic.ValidationError`` naming the field.
+Every field is validated; a bad value raises ``pydantic.ValidationError`` naming the field
+(:func:`schemas.base.validation_summary` puts it on one line).
 """
 
 from __future__ import annotations
@@ -17,46 +24,87 @@ from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
-from schemas.base import Finite, Ident, NonNegative, Positive, StrictModel
+from schemas.base import Finite, Fraction, Ident, NonNegative, Positive, StrictModel
 from schemas.bus_config import BusConfig
+from schemas.feeder import FeederConfig
 
 __all__ = [
+    "RTD_MODELS",
     "BlenderModelConfig",
     "CloseLoopSettings",
     "FeederLine",
+    "LineConfig",
     "LineSpec",
+    "NIRNoise",
     "OosSettings",
     "RtdSettings",
     "SensorLine",
     "SpecLimits",
+    "TracerPulse",
     "SERVICE_NAMES",
 ]
 
 #: the services ``twin up`` knows how to start
 SERVICE_NAMES = ("plant", "feeder", "blender", "rtd", "oos", "recorder", "dem", "closeloop")
 
+#: RTD models a declared blender may use (functions of ``twin_core.rtd.models``) and the names of
+#: their parameters, in call order
+RTD_MODELS: dict[str, tuple[str, ...]] = {
+    "axial_dispersion_open": ("tau_d", "tau", "pe"),
+    "axial_dispersion_closed": ("tau_d", "tau", "pe"),
+    "tanks_in_series": ("tau_d", "tau", "n"),
+    "cstr_pfr": ("tau_pfr", "tau_cstr"),
+}
+
+#: parameters of :data:`RTD_MODELS` that must be > 0 (the others >= 0)
+_POSITIVE_RTD_PARAMS = ("tau", "pe", "n", "tau_cstr")
+
 
 class FeederLine(StrictModel):
-    """One loss-in-weight feeder: id (key segment), component fed, set point, LIW options."""
+    """One loss-in-weight feeder of the line, feeding one component.
+
+    ``id``: unique feeder id (key segment); ``setpoint_kg_h``: mass-flow set point; ``liw``:
+    field overrides of its loss-in-weight simulator (``schemas.feeder.FeederConfig``: hopper,
+    refill levels, PID gains, feed-factor curve...), whose set point is the feeder's unless
+    ``liw`` sets it (:meth:`liw_config`); ``ideal``: a constant flow at the set point instead
+    (no LIW dynamics, no refills), the declared "perfect feeder".
+    """
 
     id: Ident
     component: Ident
-    setpoint_kg_h: Positive
+    setpoint_kg_h: NonNegative
     liw: dict[str, Any] = Field(
-        default_factory=dict, description="keyword arguments of twin_core.feeder.LossInWeightFeeder"
+        default_factory=dict, description="field overrides of schemas.feeder.FeederConfig"
     )
     ideal: bool = Field(False, description="constant flow at the set point (no LIW dynamics)")
 
+    @model_validator(mode="after")
+    def _liw_fields_known(self) -> FeederLine:
+        unknown = sorted(set(self.liw) - set(FeederConfig.model_fields))
+        if unknown:
+            raise ValueError(
+                f"liw must name fields of schemas.feeder.FeederConfig, got unknown {unknown}"
+            )
+        return self
+
+    def liw_config(self) -> FeederConfig:
+        """The configuration of this feeder's loss-in-weight simulator (validated here: a bad
+        value raises naming the field)."""
+        return FeederConfig(**{"name": self.id, "setpoint_kg_h": self.setpoint_kg_h, **self.liw})
+
 
 class BlenderModelConfig(StrictModel):
-    """Blender model used for prediction.
+    """The blender as a linear system with impulse response E(t).
 
-    ``kind: rtd``: an RTD model of ``twin_core.rtd.models`` with its parameters (SI);
-    ``kind: compartment``: a compartment-network export (``schemas.blender_model.BlenderModel``
-    JSON file) whose impulse response is used. ``kernel_s``: length of E(t) kept for the
-    streaming convolution; ``adopt_rtd_estimates``: replace E(t) by the rtd service's fits;
-    ``adopt_findings``: add the effects the closeloop service finds (``twin/<line>/closeloop/finding``)
-    to the prediction model (the time-invariant blender and feeder effects).
+    ``kind: rtd``: the RTD model ``model`` of ``twin_core.rtd.models`` (one of
+    :data:`RTD_MODELS`) with its parameters (SI); default: axial dispersion (open-open) with
+    delay, seed Table 6.2 (untruncated 10 g pulse): tau_d = 11.92 s, tau = 16.37 s, Pe = 7.67
+    (mean residence time ~32.5 s). ``kind: compartment``: a compartment-network export
+    (``schemas.blender_model.BlenderModel`` JSON file) whose impulse response is used by the
+    live blender service. ``kernel_s``: length of E(t) kept for the streaming convolution;
+    ``adopt_rtd_estimates``: replace E(t) by the rtd service's fits; ``adopt_findings``: add the
+    effects the closeloop service finds (``twin/<line>/closeloop/finding``) to the prediction
+    model (the time-invariant blender and feeder effects).
     """
 
     kind: Literal["rtd", "compartment"] = "rtd"
@@ -70,19 +118,108 @@ class BlenderModelConfig(StrictModel):
     adopt_findings: bool = True
 
     @model_validator(mode="after")
-    def _export_for_compartment(self) -> BlenderModelConfig:
-        if self.kind == "compartment" and not self.export_path:
-            raise ValueError(f"export_path must be given for kind 'compartment', got {None!r}")
+    def _model_complete(self) -> BlenderModelConfig:
+        if self.kind == "compartment":
+            if not self.export_path:
+                raise ValueError(f"export_path must be given for kind 'compartment', got {None!r}")
+            return self
+        if self.model not in RTD_MODELS:
+            raise ValueError(f"model must be one of {sorted(RTD_MODELS)}, got {self.model!r}")
+        needed = RTD_MODELS[self.model]
+        missing = [k for k in needed if k not in self.params]
+        if missing:
+            raise ValueError(f"params missing {missing} for model {self.model!r}")
+        extra = [k for k in self.params if k not in needed]
+        if extra:
+            raise ValueError(f"params has unknown keys {extra} for model {self.model!r}")
+        for k, v in self.params.items():
+            if v < 0 or (k in _POSITIVE_RTD_PARAMS and v == 0):
+                bound = "> 0" if k in _POSITIVE_RTD_PARAMS else ">= 0"
+                raise ValueError(f"params.{k} must be {bound}, got {v!r}")
         return self
+
+    @property
+    def delay_s(self) -> float:
+        """Plug-flow (transport) delay of the RTD model, s."""
+        return float(self.params.get("tau_d", self.params.get("tau_pfr", 0.0)))
+
+
+class NIRNoise(StrictModel):
+    """NIR noise of the seed (chapter 6.1.3.2, SEED_NOTES): all in % w/w.
+
+    white_sd: white noise everywhere; pink_sd: 1/f noise (standard deviation over the run);
+    proportional_rel: noise standard deviation proportional to the signal (largest near a
+    peak); outlier_prob / outlier_sd: probability per sample and size of isolated outliers;
+    baseline_offset: constant offset of the calibration. Defaults put the baseline at mean
+    -0.05 and standard deviation ~0.122 (seed: -0.03 to -0.074 and 0.125 to 0.132).
+    """
+
+    white_sd: NonNegative = 0.10
+    pink_sd: NonNegative = 0.07
+    proportional_rel: NonNegative = 0.02
+    outlier_prob: Fraction = 0.003
+    outlier_sd: NonNegative = 1.5
+    baseline_offset: Finite = -0.05
 
 
 class SensorLine(StrictModel):
-    """The NIR probe at the blender outlet (noise fields as ``twin_core.plant.NIRNoise``)."""
+    """The NIR probe at the blender outlet: measures one component in % w/w every period."""
 
     id: Ident = "nir1"
     component: Ident
     sample_period_s: Positive = 1.0
-    noise: dict[str, Finite] = Field(default_factory=dict)
+    noise: NIRNoise = Field(default_factory=NIRNoise)
+
+
+class TracerPulse(StrictModel):
+    """A known mass of a component injected at the blender inlet at ``t_s`` over
+    ``duration_s``."""
+
+    t_s: NonNegative
+    mass_kg: NonNegative
+    component: Ident
+    duration_s: Positive = 1.0
+
+
+class LineConfig(StrictModel):
+    """The declared line: feeders -> blender -> NIR sensor, plus planned tracer pulses.
+
+    ``tracers`` are injected by the plant simulator; the live services take the pulses from the
+    ``tracer_pulse`` events instead.
+    """
+
+    name: Ident = "line1"
+    feeders: list[FeederLine] = Field(min_length=1)
+    blender: BlenderModelConfig = Field(default_factory=BlenderModelConfig)
+    sensor: SensorLine
+    tracers: list[TracerPulse] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _line_consistent(self) -> LineConfig:
+        ids = [f.id for f in self.feeders]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"feeders ids must be unique, got {ids}")
+        comps = {f.component for f in self.feeders}
+        if self.sensor.component not in comps:
+            raise ValueError(
+                f"sensor.component must be one of {sorted(comps)}, got {self.sensor.component!r}"
+            )
+        for p in self.tracers:
+            if p.component not in comps:
+                raise ValueError(
+                    f"tracers component must be one of {sorted(comps)}, got {p.component!r}"
+                )
+        return self
+
+    @property
+    def components(self) -> dict[str, str]:
+        """feeder id -> component."""
+        return {f.id: f.component for f in self.feeders}
+
+    def line_dict(self) -> dict[str, Any]:
+        """JSON-able dict of the declared line: the :class:`LineConfig` fields only (also for a
+        :class:`LineSpec`), e.g. for a report or a recording's provenance."""
+        return self.model_dump(mode="json", include=set(LineConfig.model_fields))
 
 
 class SpecLimits(StrictModel):
@@ -177,14 +314,11 @@ class CloseLoopSettings(StrictModel):
         return self
 
 
-class LineSpec(StrictModel):
-    """The whole live-twin configuration (see the module docstring)."""
+class LineSpec(LineConfig):
+    """The live twin's configuration: the declared line and how the services run it (see the
+    module docstring)."""
 
-    name: Ident = "line1"
     dt_s: Positive = Field(1.0, description="tick of the inlet and prediction streams, s")
-    feeders: list[FeederLine] = Field(min_length=1)
-    blender: BlenderModelConfig = Field(default_factory=BlenderModelConfig)
-    sensor: SensorLine
     spec: list[SpecLimits] = Field(min_length=1)
     oos: OosSettings = Field(default_factory=OosSettings)
     rtd: RtdSettings = Field(default_factory=RtdSettings)
@@ -214,15 +348,8 @@ class LineSpec(StrictModel):
     record_path: str | None = Field(None, description="MCAP file written by the recorder")
 
     @model_validator(mode="after")
-    def _consistent(self) -> LineSpec:
-        ids = [f.id for f in self.feeders]
-        if len(set(ids)) != len(ids):
-            raise ValueError(f"feeders ids must be unique, got {ids}")
+    def _live_consistent(self) -> LineSpec:
         comps = {f.component for f in self.feeders}
-        if self.sensor.component not in comps:
-            raise ValueError(
-                f"sensor.component must be one of {sorted(comps)}, got {self.sensor.component!r}"
-            )
         for s in self.spec:
             if s.component not in comps:
                 raise ValueError(
@@ -237,11 +364,6 @@ class LineSpec(StrictModel):
         return self
 
     # ------------------------------------------------------------------ helpers
-    @property
-    def components(self) -> dict[str, str]:
-        """feeder id -> component."""
-        return {f.id: f.component for f in self.feeders}
-
     def limits(self, component: str) -> SpecLimits | None:
         for s in self.spec:
             if s.component == component:
@@ -265,34 +387,6 @@ class LineSpec(StrictModel):
     def router_bus(self) -> BusConfig:
         """The router session hosted by ``twin up``."""
         return self.bus.model_copy(update={"line": self.name, "timestamping": True})
-
-    def plant_config(self) -> Any:
-        """The equivalent ``twin_core.plant.LineConfig`` (declared line model)."""
-        from twin_core.plant import line_config_from_dict
-
-        if self.blender.kind != "rtd":
-            raise ValueError(f"plant_config needs blender.kind 'rtd', got {self.blender.kind!r}")
-        return line_config_from_dict(
-            {
-                "name": self.name,
-                "feeders": [
-                    {
-                        "name": f.id,
-                        "component": f.component,
-                        "setpoint_kg_h": f.setpoint_kg_h,
-                        "liw": dict(f.liw),
-                        "ideal": f.ideal,
-                    }
-                    for f in self.feeders
-                ],
-                "blender": {"model": self.blender.model, "params": dict(self.blender.params)},
-                "sensor": {
-                    "component": self.sensor.component,
-                    "sample_period_s": self.sensor.sample_period_s,
-                    "noise": dict(self.sensor.noise),
-                },
-            }
-        )
 
     def to_file(self, path: str | Path) -> None:
         """Write as JSON (``.json``) or YAML (any other suffix)."""

@@ -62,7 +62,7 @@ class CloseLoopService(Service):
         super().__init__("closeloop", spec=spec, **kwargs)
         c = spec.closeloop
         self.core = OnlineCloseLoop(
-            spec.plant_config(),
+            spec,
             spec.dt_s,
             interval_s=c.interval_s,
             window_s=c.window_s,

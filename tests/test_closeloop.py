@@ -14,6 +14,7 @@ import pytest
 from scipy import stats
 
 from schemas.closeloop import CloseLoopReport
+from schemas.line import NIRNoise
 from twin_core.closeloop import (
     EFFECTS,
     IdentifyOptions,
@@ -28,7 +29,8 @@ from twin_core.closeloop import (
     residual_diagnostics,
 )
 from twin_core.closeloop.scenarios import EFFECT_MAGNITUDES, effect_spec, standard_scenario
-from twin_core.plant import LineModel, NIRNoise, add_nir_noise, simulate_line
+from twin_core.online.inlet import event_record
+from twin_core.plant import LineModel, add_nir_noise, simulate_line
 
 DURATION = 1500.0
 
@@ -244,7 +246,7 @@ def test_online_window_finding_returns_augmented_effects():
         run.measured_pct_w_w,
         inp,
         LineModel(cfg),
-        events=[e.to_dict() for e in run.events],
+        events=[event_record(e) for e in run.events],
         options={"candidates": ["sensor_gain", "sensor_offset", "dead_zone"], "max_effects": 1},
     )
     assert f.status == "explained"
@@ -259,17 +261,20 @@ def test_pulse_responses_measure_the_extra_delay():
     """Moments of a pulse response (seed Eqs. 3-4): a hidden 10 s transport delay shifts the
     measured mean residence time by 10 s against the declared model (noise-free probe), and
     the area (tracer recovered) is unchanged."""
+    from schemas.line import FeederLine, LineConfig, SensorLine, TracerPulse
     from twin_core.closeloop import pulse_responses
-    from twin_core.plant import FeederSpec, LineConfig, SensorSpec, TracerPulse
 
     quiet = NIRNoise(white_sd=0, pink_sd=0, proportional_rel=0, outlier_prob=0, baseline_offset=0)
     cfg = LineConfig(
         feeders=[
-            FeederSpec("api", "api", 1.2, ideal=True),
-            FeederSpec("exc", "exc", 10.8, ideal=True),
+            FeederLine(id="api", component="api", setpoint_kg_h=1.2, ideal=True),
+            FeederLine(id="exc", component="exc", setpoint_kg_h=10.8, ideal=True),
         ],
-        sensor=SensorSpec("api", noise=quiet),
-        tracers=[TracerPulse(100.0, 0.01, "api"), TracerPulse(400.0, 0.005, "api")],
+        sensor=SensorLine(component="api", noise=quiet),
+        tracers=[
+            TracerPulse(t_s=100.0, mass_kg=0.01, component="api"),
+            TracerPulse(t_s=400.0, mass_kg=0.005, component="api"),
+        ],
     )
     run = simulate_line(cfg, 700.0, seed=0, effects=[effect_spec("extra_delay", 1)])
     inp = run.inputs()
@@ -294,15 +299,18 @@ def test_noise_levels_estimated_from_quiet_samples():
     biased high); with the declared noise the residual is called ``unexplained``, with the
     estimated one ``consistent``; an injected sensor offset is still found with estimated noise.
     A record with no quiet stretch is refused with a clear error."""
-    import dataclasses
-
     from twin_core.closeloop.noise import estimate_nir_noise, with_estimated_noise
 
     cfg, dist = standard_scenario(1500.0)
     d = cfg.sensor.noise
-    loud = dataclasses.replace(d, white_sd=2 * d.white_sd, pink_sd=2 * d.pink_sd)
-    loud = dataclasses.replace(loud, proportional_rel=2 * d.proportional_rel)
-    cfg2 = dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, noise=loud))
+    loud = d.model_copy(
+        update={
+            "white_sd": 2 * d.white_sd,
+            "pink_sd": 2 * d.pink_sd,
+            "proportional_rel": 2 * d.proportional_rel,
+        }
+    )
+    cfg2 = cfg.model_copy(update={"sensor": cfg.sensor.model_copy(update={"noise": loud})})
     data = RunData.from_line_run(simulate_line(cfg2, 1500.0, seed=203, disturbances=dist))
     model, est = with_estimated_noise(data, LineModel(cfg))
     assert est.white_factor == pytest.approx(2.0, rel=0.15)

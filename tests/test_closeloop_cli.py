@@ -3,24 +3,34 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from schemas import keys
 from schemas.closeloop import CloseLoopReport
-from schemas.messages import Event, FeederFlow, MeasuredConcentration
+from schemas.line import LineConfig, LineSpec
+from schemas.messages import FeederFlow, MeasuredConcentration
 from twin_core.closeloop.scenarios import effect_spec, standard_scenario
-from twin_core.plant import line_config_to_dict, simulate_line
+from twin_core.plant import simulate_line
 
 recording = pytest.importorskip("services.recording")
+CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+
+
+def write_line_config(cfg: LineConfig, path: Path) -> None:
+    """The line configuration file of a run: line1.yaml's settings with the run's declared line;
+    no planned tracers (the recording's tracer events are the source)."""
+    data = LineSpec.from_file(CONFIG).model_dump()
+    data.update(cfg.line_dict(), tracers=[])
+    LineSpec.model_validate(data).to_file(path)
 
 
 def write_mcap(run, path, line="line1"):
     """Record a LineRun as the plant would publish it (reported flows, NIR, events)."""
-    seq = 0
     with recording.McapRecorder(path) as rec:
         for i, t in enumerate(run.t_s):
             for name, f in run.feeders.items():
@@ -45,17 +55,8 @@ def write_mcap(run, path, line="line1"):
                     concentration_pct_w_w=float(y),
                 )
                 rec.write_message(keys.measured_concentration(line, "nir1"), msg)
-        for e in run.events:
-            kw = {}
-            if e.kind == "tracer_pulse":
-                kw = {
-                    "component": e.source,
-                    "mass_kg": e.detail["mass_kg"],
-                    "duration_s": e.detail["duration_s"],
-                }
-            msg = Event(t=e.t_s, seq=seq, kind=e.kind, source=e.source, **kw)
-            seq += 1
-            rec.write_message(keys.event(line, "plant", e.source), msg)
+        for e in run.events:  # the simulator's events are the wire messages
+            rec.write_message(keys.event(line, "plant", e.source), e)
 
 
 def test_cli_close_loop_writes_report_and_figures(tmp_path):
@@ -70,9 +71,7 @@ def test_cli_close_loop_writes_report_and_figures(tmp_path):
     mcap = tmp_path / "run.mcap"
     write_mcap(run, mcap)
     conf = tmp_path / "line.yaml"
-    d = line_config_to_dict(cfg)
-    d["tracers"] = []  # the recording's tracer events are the source
-    conf.write_text(yaml.safe_dump(d))
+    write_line_config(cfg, conf)
     out = tmp_path / "report.json"
     figs = tmp_path / "figs"
     rc = main(
@@ -109,9 +108,7 @@ def test_cli_close_loop_estimates_the_noise_on_request(tmp_path):
     mcap = tmp_path / "run.mcap"
     write_mcap(run, mcap)
     conf = tmp_path / "line.yaml"
-    d = line_config_to_dict(cfg)
-    d["tracers"] = []
-    conf.write_text(yaml.safe_dump(d))
+    write_line_config(cfg, conf)
     out = tmp_path / "report.json"
     args = ["close-loop", str(mcap), "--config", str(conf), "--report", str(out)]
     assert main([*args, "--noise", "estimate", "--max-effects", "1"]) == 0
@@ -121,3 +118,23 @@ def test_cli_close_loop_estimates_the_noise_on_request(tmp_path):
     assert rep.status == "consistent" and rep.effects == []
     assert main(args) == 0
     assert json.loads(out.read_text())["noise"]["source"] == "declared"
+
+
+def test_cli_close_loop_rejects_a_file_that_is_not_a_line_config(tmp_path, caplog):
+    """One format: a YAML that is not a ``LineSpec`` (here a bare declared line without the
+    specification, with a feeder's id misspelt) stops the command with exit code 2 and one line
+    naming the fields, before the recording is read."""
+    from services.cli.main import main
+
+    cfg, _ = standard_scenario(900.0)
+    data = cfg.line_dict()
+    data["feeders"][0]["name"] = data["feeders"][0].pop("id")
+    conf = tmp_path / "line.json"
+    conf.write_text(json.dumps(data))
+    args = ["close-loop", str(tmp_path / "absent.mcap"), "--config", str(conf)]
+    with caplog.at_level(logging.ERROR):
+        rc = main([*args, "--report", str(tmp_path / "r.json")])
+    assert rc == 2
+    (line,) = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert "is not a valid line config" in line and "\n" not in line
+    assert "feeders.0.id: Field required" in line and "spec: Field required" in line

@@ -12,8 +12,7 @@ import pytest
 
 from schemas.line import LineSpec
 from twin_core.closeloop.online import OnlineCloseLoop, Window
-from twin_core.plant import simulate_line
-from twin_core.plant.config import FlowDisturbance
+from twin_core.plant import FlowDisturbance, simulate_line
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
 DIST = [
@@ -37,7 +36,7 @@ def _stream(ocl: OnlineCloseLoop, run) -> list:
 def test_windows_find_the_hidden_dead_zone_once_and_then_hold():
     """Ground truth: a dead zone (30 % of the flow through a 40 s stagnant CSTR) injected by the
     plant simulator, absent from the declared model."""
-    cfg = LineSpec.from_file(CONFIG).plant_config()
+    cfg = LineSpec.from_file(CONFIG)
     truth = {"name": "dead_zone", "params": {"fraction": 0.3, "tau_s": 40.0}}
     run = simulate_line(cfg, 1500.0, seed=4, effects=[truth], disturbances=DIST)
     ocl = OnlineCloseLoop(cfg, 1.0, interval_s=300.0, window_s=1200.0, min_window_s=600.0)
@@ -61,7 +60,7 @@ def test_windows_find_the_hidden_dead_zone_once_and_then_hold():
 
 
 def test_no_effect_no_claim_and_bad_input_is_named():
-    cfg = LineSpec.from_file(CONFIG).plant_config()
+    cfg = LineSpec.from_file(CONFIG)
     run = simulate_line(cfg, 1200.0, seed=8, disturbances=DIST)
     ocl = OnlineCloseLoop(cfg, 1.0)
     found = _stream(ocl, run)

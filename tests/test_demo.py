@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from schemas import keys
+from schemas.line import LineConfig
 from schemas.messages import FeederFlow
 from services.demo import BUNDLED_RECORDING, run_replay_check
 from services.recording import McapRecorder, load_line_data, read_recording
@@ -98,6 +99,22 @@ def test_bundled_recording_script_is_reproducible(tmp_path):
     regenerated, bundled = read_recording(a).channels, read_recording(BUNDLED_RECORDING).channels
     for key in ("twin/line1/feeder/api/flow", "twin/line1/pat/nir1/concentration"):
         assert regenerated[key].message_count == bundled[key].message_count == 1801
+    # the provenance holds the declared line, which loads as the one line configuration model
+    configs = [
+        LineConfig.model_validate(json.loads(_metadata(p)["provenance"]["line_config"]))
+        for p in (a, BUNDLED_RECORDING)
+    ]
+    assert configs[0] == configs[1]
+    assert [f.id for f in configs[1].feeders] == ["api", "excipient"]
+    assert [p.mass_kg for p in configs[1].tracers] == [0.01, 0.0075, 0.005]
+
+
+def _metadata(path: Path) -> dict[str, dict[str, str]]:
+    """The MCAP metadata records of a file, by name."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
 
 
 def test_twin_demo_cli(tmp_path):

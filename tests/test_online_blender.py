@@ -7,10 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from schemas.line import LineSpec
+from schemas.line import LineSpec, TracerPulse
 from twin_core.online.blender import BlenderPredictor, FlowMemory, tick_grid
-from twin_core.plant import LineModel, TracerPulse, simulate_line
-from twin_core.plant.config import FlowDisturbance
+from twin_core.plant import FlowDisturbance, LineModel, simulate_line
 from twin_core.plant.messages import simulate_messages
 from twin_core.rtd.models import model_e
 
@@ -56,7 +55,7 @@ def test_streaming_prediction_equals_the_declared_line_model():
         seed=2,
         disturbances=[{"feeder": "api", "t_s": 200.0, "delta_kg_h": 0.5, "duration_s": 60.0}],
     )
-    ref = LineModel(spec.plant_config()).outlet(run.inputs())["api"]
+    ref = LineModel(spec).outlet(run.inputs())["api"]
     np.testing.assert_allclose(stream(BlenderPredictor(spec), run), ref, rtol=1e-6, atol=1e-6)
 
 
@@ -67,7 +66,7 @@ def test_a_tracer_pulse_announced_late_gives_the_declared_model(late):
     of seed Table 6.2, where E(t) is exactly 0): the ticks already predicted get their inlet
     corrected, so the prediction equals the declared model's, as if it had come in time."""
     spec = spec_with()
-    cfg = spec.plant_config()
+    cfg = spec.model_copy(deep=True)
     cfg.tracers.append(TracerPulse(t_s=300.0, mass_kg=0.010, component="api"))
     run = simulate_line(cfg, 600.0, dt_s=1.0, seed=6)
     ref = LineModel(cfg).outlet(run.inputs())["api"]
@@ -83,7 +82,7 @@ def test_a_tracer_pulse_announced_after_the_delay_corrects_only_later_ticks():
     before the event are not revisited, those after it equal the in-time prediction (the
     corrected inlet is in the convolution's history)."""
     spec = spec_with()
-    cfg = spec.plant_config()
+    cfg = spec.model_copy(deep=True)
     cfg.tracers.append(TracerPulse(t_s=300.0, mass_kg=0.010, component="api"))
     run = simulate_line(cfg, 600.0, dt_s=1.0, seed=6)
     pred = stream(BlenderPredictor(spec), run, pulse_late_ticks=30)
@@ -152,7 +151,7 @@ def test_an_adopted_rtd_estimate_gives_the_declared_model_with_its_parameters():
     np.testing.assert_array_equal(
         bp.e, model_e("axial_dispersion_open", params, tick_grid(spec.dt_s, 300.0))
     )
-    cfg = spec.plant_config()
+    cfg = spec.model_copy(deep=True)
     cfg.blender.params = dict(params)
     ref = LineModel(cfg).outlet(run.inputs())["api"]
     pred = np.array([got[float(t)] for t in run.t_s])
@@ -180,7 +179,7 @@ def test_prediction_with_adopted_effects_equals_the_batch_model(effects):
     data = LineSpec.from_file(CONFIG).model_dump()
     data["feeders"][0]["liw"] = dict(initial_mass_kg=0.6, refill_low_kg=0.45, refill_high_kg=0.65)
     spec = LineSpec.model_validate(data)
-    cfg = spec.plant_config()
+    cfg = spec.model_copy(deep=True)
     run = simulate_line(cfg, 900.0, seed=2, disturbances=DIST)
     assert any(r.refilling.any() for r in run.feeders.values())
     bp = BlenderPredictor(spec)

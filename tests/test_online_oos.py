@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from schemas import keys
-from schemas.line import LineSpec
+from schemas.line import LineSpec, TracerPulse
 from schemas.messages import Event, FeederFlow, MeasuredConcentration, PredictedConcentration
 from twin_core.online.blender import BlenderPredictor, declared_kernel
 from twin_core.online.oos import OosCore
-from twin_core.plant import TracerPulse, simulate_line
+from twin_core.plant import simulate_line
 from twin_core.plant.messages import run_messages, simulate_messages
 from twin_core.quality.funnel import funnel_gain
 from twin_core.quality.lots import diversion_window
@@ -27,7 +27,7 @@ def spec_with(**kw) -> LineSpec:
 
 
 def tracer_run(spec: LineSpec, seed: int = 9):
-    cfg = spec.plant_config()
+    cfg = spec.model_copy(deep=True)
     cfg.tracers.append(TracerPulse(t_s=300.0, mass_kg=0.010, component="api"))
     return simulate_line(cfg, 600.0, dt_s=1.0, seed=seed)
 

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from schemas.line import LineSpec
+from schemas.line import LineSpec, TracerPulse
 from twin_core.online.rtd import RtdCore, analyze_segment
 from twin_core.online.tracer import TracerPulseDetector
-from twin_core.plant import TracerPulse, simulate_line
+from twin_core.plant import simulate_line
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
 
@@ -25,7 +25,7 @@ def test_the_fit_of_a_simulated_tracer_pulse_recovers_seed_table_6_2():
     """Seed Table 6.2: tau_d = 11.92 s, tau = 16.37 s, Pe = 7.67 drive the simulated line; the
     detected, cleaned and fitted pulse (10 g API tracer at 12 kg/h) gives them back."""
     spec = spec_with(dt_s=0.5, sensor={"id": "nir1", "component": "api", "sample_period_s": 0.5})
-    cfg = spec.plant_config()
+    cfg = spec.model_copy(deep=True)
     cfg.tracers.append(TracerPulse(t_s=300.0, mass_kg=0.010, component="api"))
     for f in cfg.feeders:
         f.ideal = True  # a steady line: the tracer is the only excursion
@@ -50,7 +50,7 @@ def pulse_run(refill_at: float | None):
     """A steady line (ideal feeders) with an unannounced 10 g API tracer at 900 s, and an API
     hopper refill flagged by the feeder from ``refill_at`` for 30 s."""
     spec = spec_with(rtd={"detect": "auto"})
-    cfg = spec.plant_config()
+    cfg = spec.model_copy(deep=True)
     cfg.tracers.append(TracerPulse(t_s=900.0, mass_kg=0.010, component="api"))
     for f in cfg.feeders:
         f.ideal = True

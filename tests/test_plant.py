@@ -5,18 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from schemas.line import (
+    RTD_MODELS,
+    BlenderModelConfig,
+    FeederLine,
+    LineConfig,
+    NIRNoise,
+    SensorLine,
+    TracerPulse,
+)
 from twin_core.plant import (
     EFFECTS,
-    BlenderSpec,
-    FeederSpec,
     FlowDisturbance,
-    LineConfig,
     LineModel,
-    NIRNoise,
-    SensorSpec,
-    TracerPulse,
-    line_config_from_dict,
-    line_config_to_dict,
     make_effect,
     pink_noise,
     rtd_kernel,
@@ -35,10 +36,10 @@ def ideal_line(
 ) -> LineConfig:
     return LineConfig(
         feeders=[
-            FeederSpec("api", "api", api_kg_h, ideal=True),
-            FeederSpec("excipient", "excipient", exc_kg_h, ideal=True),
+            FeederLine(id="api", component="api", setpoint_kg_h=api_kg_h, ideal=True),
+            FeederLine(id="excipient", component="excipient", setpoint_kg_h=exc_kg_h, ideal=True),
         ],
-        sensor=SensorSpec("api", noise=noise),
+        sensor=SensorLine(component="api", noise=noise),
         tracers=list(tracers),
     )
 
@@ -57,7 +58,9 @@ def test_tracer_pulse_is_the_table_6_2_rtd():
     is the injected mass and the mean residence time is tau_d + tau (1 + 2/Pe) = 32.56 s
     (SEED_NOTES: ~32.5 s)."""
     m = 1e-4  # kg: small enough that the total flow stays ~ Q
-    cfg = ideal_line(api_kg_h=0.0, exc_kg_h=12.0, tracers=[TracerPulse(50.0, m, "api", 1.0)])
+    cfg = ideal_line(
+        api_kg_h=0.0, exc_kg_h=12.0, tracers=[TracerPulse(t_s=50.0, mass_kg=m, component="api")]
+    )
     run = simulate_line(cfg, 400.0, seed=0)
     c = run.outlet_true_pct_w_w["api"]
     q = 12.0 / 3600.0
@@ -88,7 +91,7 @@ def test_seed_line_liw_feeders_refill_and_events():
     run = simulate_line(cfg, 900.0, seed=3)
     kinds = [e.kind for e in run.events]
     assert "refill_start" in kinds and "refill_stop" in kinds and "tracer_pulse" in kinds
-    times = [e.t_s for e in run.events]
+    times = [e.t for e in run.events]
     assert times == sorted(times)
     assert run.feeders["api"].refilling.any()
     late = run.t_s > 300
@@ -146,7 +149,7 @@ def test_rtd_effects_conserve_mass_and_shift_mean():
     """Dead zone / bypass / delay keep the integral of E at 1; a dead zone of fraction f and
     time tau_s adds f tau_s to the mean; a delay d adds d (moments of a convolution add)."""
     tk = np.arange(0, 3000.0, 0.5)
-    b = BlenderSpec()
+    b = BlenderModelConfig()
     base = rtd_kernel(b, tk)
     m0 = np.sum(tk * base) / np.sum(base)
     for spec, dmean in [
@@ -191,12 +194,22 @@ def test_hidden_refill_surge_changes_delivered_not_reported():
 
 def test_config_round_trip_and_validation():
     cfg = seed_line(tracer_g=(10.0, 5.0), tracer_times_s=(60.0, 300.0))
-    d = line_config_to_dict(cfg)
-    assert line_config_from_dict(d) == cfg
-    with pytest.raises(ValueError, match="tau"):
-        BlenderSpec(params={"tau_d": 1.0, "tau": -1.0, "pe": 5.0})
+    assert LineConfig.model_validate(cfg.line_dict()) == cfg
+    with pytest.raises(ValueError, match="params.tau must be > 0"):
+        BlenderModelConfig(params={"tau_d": 1.0, "tau": -1.0, "pe": 5.0})
+    with pytest.raises(ValueError, match="params missing"):
+        BlenderModelConfig(model="tanks_in_series")
     with pytest.raises(ValueError, match="sensor.component"):
-        LineConfig(feeders=[FeederSpec("a", "a", 1.0)], sensor=SensorSpec("b"))
+        LineConfig(
+            feeders=[FeederLine(id="a", component="a", setpoint_kg_h=1.0)],
+            sensor=SensorLine(component="b"),
+        )
+    with pytest.raises(ValueError, match="liw must name fields"):
+        FeederLine(id="a", component="a", setpoint_kg_h=1.0, liw={"ff_maxx": 1.0})
+    with pytest.raises(ValueError, match="refill_low_kg must be < refill_high_kg"):
+        FeederLine(
+            id="a", component="a", setpoint_kg_h=1.0, liw={"refill_low_kg": 6.0}
+        ).liw_config()
     with pytest.raises(ValueError, match="dead_zone.fraction"):
         make_effect({"name": "dead_zone", "params": {"fraction": 2.0}})
     with pytest.raises(ValueError, match="effect name"):
@@ -213,7 +226,30 @@ def test_line_starts_full_at_steady_state_with_slow_rtd_effects():
     eff = [{"name": "dead_zone", "params": {"fraction": 0.5, "tau_s": 400.0}}]
     run = simulate_line(cfg, 600.0, seed=0, effects=eff)
     np.testing.assert_allclose(run.outlet_true_pct_w_w["api"], 10.0, rtol=1e-6)
-    cfg_p = ideal_line(tracers=[TracerPulse(0.0, 0.01, "api", 1.0)])
+    cfg_p = ideal_line(tracers=[TracerPulse(t_s=0.0, mass_kg=0.01, component="api")])
     run_p = simulate_line(cfg_p, 600.0, seed=0)
     assert run_p.outlet_true_pct_w_w["api"][0] == pytest.approx(10.0, rel=1e-6)
     assert run_p.outlet_true_pct_w_w["api"][-1] == pytest.approx(10.0, rel=1e-4)
+
+
+def test_declared_model_needs_an_rtd_blender():
+    """A compartment export drives the live blender service only; the declared line model and the
+    simulator convolve with an RTD model and say so."""
+    cfg = ideal_line()
+    cfg.blender = BlenderModelConfig(kind="compartment", export_path="model.json")
+    with pytest.raises(ValueError, match="blender.kind must be 'rtd'"):
+        LineModel(cfg)
+    with pytest.raises(ValueError, match="blender.kind must be 'rtd'"):
+        simulate_line(cfg, 10.0)
+
+
+def test_rtd_model_table_names_the_model_functions_and_their_parameters():
+    """schemas.line.RTD_MODELS (pure data) lists functions of twin_core.rtd.models with their
+    parameter names in call order (peer: the functions' signatures)."""
+    import inspect
+
+    from twin_core.rtd import models
+
+    for name, params in RTD_MODELS.items():
+        sig = inspect.signature(getattr(models, name))
+        assert tuple(sig.parameters)[1:] == params, name

@@ -137,7 +137,7 @@ def test_the_blender_adopts_the_finding_and_predicts_the_true_outlet_better(live
     t = np.asarray(run.t_s)
     assert len(pred) == t.size  # one prediction per tick, none lost or repeated
     live_pred = np.array([pred[float(x)] for x in t])
-    declared = LineModel(spec.plant_config()).outlet(run.inputs())["api"]
+    declared = LineModel(spec).outlet(run.inputs())["api"]
     truth = np.asarray(run.sensor_true_pct_w_w)  # probe reading without noise (no sensor effect)
     # after the adoption reached the blender (the finding of the window ending at 600 s is
     # published once that window is complete; allow the replay to run ahead of it)

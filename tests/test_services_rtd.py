@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from schemas.line import LineSpec
+from schemas.line import LineSpec, TracerPulse
 from schemas.messages import RtdEstimate
 from services.rtd import RtdService
-from twin_core.plant import TracerPulse, simulate_line
+from twin_core.plant import simulate_line
 from twin_core.plant.messages import run_messages
 
 CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
@@ -32,7 +32,7 @@ def test_rtd_service_fits_the_announced_pulse_and_skips_a_feeder_disturbance():
     pulse, as the bus carries them: the rtd service (auto detection on) publishes an estimate of
     the tracer only, near seed Table 6.2, and counts the skipped excursion."""
     spec = LineSpec.from_file(CONFIG)
-    cfg = spec.plant_config()
+    cfg = spec.model_copy(deep=True)
     cfg.tracers.append(TracerPulse(t_s=900.0, mass_kg=0.010, component="api"))
     for f in cfg.feeders:
         f.ideal = True

@@ -3,9 +3,9 @@
     twin close-loop RECORDING.mcap --config LINE.yaml --report OUT.json [--figures DIR]
 
 RECORDING is an MCAP log of the line (feeder flows, NIR concentration, events; checked by
-``twin_core.closeloop.check.check_recording``). LINE.yaml is either a plain declared-line config
-(``twin_core.plant.line_config_from_dict`` keys: name, feeders, blender, sensor, tracers) or a
-live-twin ``schemas.line.LineSpec`` file. The report is validated against
+``twin_core.closeloop.check.check_recording``). LINE.yaml is the line's configuration file
+(``schemas.line.LineSpec``, e.g. ``services/configs/line1.yaml``); its declared line (feeders,
+blender, sensor, tracers) is the model checked. The report is validated against
 ``schemas.closeloop.CloseLoopReport``; ``--figures`` writes PNGs of measured vs predicted and of
 the residuals, before and after.
 """
@@ -22,16 +22,17 @@ log = logging.getLogger("twin.closeloop")
 
 
 def load_line_config(path: str | Path) -> Any:
-    """A ``twin_core.plant.LineConfig`` from a YAML/JSON file (plain form or LineSpec)."""
-    from schemas.base import read_mapping
-    from twin_core.plant import line_config_from_dict
+    """The ``schemas.line.LineSpec`` of a YAML/JSON line configuration file; a file that is not
+    one raises ``ValueError`` with one line naming the fields and values rejected."""
+    from pydantic import ValidationError
 
-    data = read_mapping(path)
-    if {"spec", "oos", "bus", "services", "dt_s"} & set(data):
-        from schemas.line import LineSpec
+    from schemas.base import validation_summary
+    from schemas.line import LineSpec
 
-        return LineSpec.model_validate(data).plant_config()
-    return line_config_from_dict(data)
+    try:
+        return LineSpec.from_file(path)
+    except ValidationError as exc:
+        raise ValueError(f"{path} is not a valid line config: {validation_summary(exc)}") from None
 
 
 def cmd_close_loop(args: argparse.Namespace) -> int:
@@ -49,10 +50,15 @@ def cmd_close_loop(args: argparse.Namespace) -> int:
         train_fraction=args.train_fraction,
         skip_s=args.skip_s,
     )
+    try:
+        config = load_line_config(args.config)
+    except ValueError as exc:
+        log.error("%s", exc)
+        return 2
     messages = ((m.key, m.decode()) for m in read_recording(args.recording).messages)
     report = check_recording(
         messages,
-        load_line_config(args.config),
+        config,
         opts,
         noise="estimate" if args.noise == "estimate" else "declared",
         recording=str(args.recording),
@@ -78,7 +84,7 @@ def register(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("recording", help="MCAP recording of the line")
-    p.add_argument("--config", required=True, help="declared line config (YAML/JSON)")
+    p.add_argument("--config", required=True, help="line configuration (YAML/JSON LineSpec)")
     p.add_argument("--report", required=True, help="JSON report to write")
     p.add_argument("--figures", default=None, help="directory for PNG figures")
     p.add_argument("--candidates", default=None, help="comma-separated effect names (default all)")

@@ -15,11 +15,11 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Literal
 
+from schemas.line import LineConfig
 from twin_core.closeloop.identify import IdentifyOptions
 from twin_core.closeloop.plots import closeloop_figures
 from twin_core.closeloop.record import LineRecord
 from twin_core.closeloop.report import close_loop
-from twin_core.plant.config import LineConfig
 from twin_core.plant.model import LineModel
 
 __all__ = ["check_recording"]
@@ -55,10 +55,9 @@ def check_recording(
         recording: the recording's name in the report.
         figures_dir: where to write the PNG figures (listed in the report's ``figures``).
     """
-    components = {f.name: f.component for f in config.feeders}
     sensor = config.sensor
     record = LineRecord.from_messages(
-        messages, components, sensor.sample_period_s, sensor.component
+        messages, config.components, sensor.sample_period_s, sensor.component
     )
     data = record.run_data(Path(recording).name)
     if not data.inputs.tracers:

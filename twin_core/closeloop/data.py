@@ -3,7 +3,8 @@
 A :class:`RunData` is what the close-loop needs of a recording: the uniform time grid, the
 NIR reading of the measured component, the twin's inputs (reported feeder flows, refill flags,
 tracer pulses; a ``twin_core.plant.LineInputs``) and the events (refills, pulses, disturbances,
-set-point changes) as dicts ``{"t_s", "kind", "source"}``.
+set-point changes) as dicts ``{"t_s", "kind", "source", ...}``
+(``twin_core.online.inlet.event_record`` of a ``schemas.messages.Event``).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from twin_core.online.inlet import event_record
 from twin_core.plant.model import LineInputs
 
 
@@ -46,7 +48,7 @@ class RunData:
             t_s=run.t_s,
             measured=run.measured_pct_w_w,
             inputs=run.inputs(),
-            events=[e.to_dict() for e in run.events],
+            events=[event_record(e) for e in run.events],
             name=name,
         )
 

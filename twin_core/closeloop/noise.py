@@ -20,7 +20,6 @@ number (the discrete band 1/N .. 1/2 of ``twin_core.plant.nir.pink_noise``).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,8 +27,8 @@ import numpy as np
 from scipy.optimize import nnls
 from scipy.signal import periodogram
 
+from schemas.line import LineConfig, NIRNoise
 from twin_core.closeloop.data import RunData, hampel
-from twin_core.plant.config import LineConfig, NIRNoise
 from twin_core.plant.model import LineModel, rtd_kernel
 
 
@@ -120,11 +119,12 @@ def estimate_nir_noise(
     n = data.t_s.size
     harmonic = float(np.log(max(n // 2, 1)) + np.euler_gamma)
     pink = float(np.sqrt(p1 * fs * dt * harmonic)) if p1 > 0 else 0.0
-    noise = dataclasses.replace(
-        declared,
-        white_sd=declared.white_sd * k if decl > 0 else float(np.sqrt(var_white)),
-        proportional_rel=declared.proportional_rel * k,
-        pink_sd=pink,
+    noise = declared.model_copy(
+        update={
+            "white_sd": declared.white_sd * k if decl > 0 else float(np.sqrt(var_white)),
+            "proportional_rel": declared.proportional_rel * k,
+            "pink_sd": pink,
+        }
     )
     return NoiseEstimate(noise, k, pink, n_quiet, len(segs))
 
@@ -133,5 +133,5 @@ def with_estimated_noise(data: RunData, model: LineModel) -> tuple[LineModel, No
     """The model with its sensor noise replaced by :func:`estimate_nir_noise` (same effects)."""
     est = estimate_nir_noise(data, model)
     cfg = model.config
-    sensor = dataclasses.replace(cfg.sensor, noise=est.noise)
-    return LineModel(dataclasses.replace(cfg, sensor=sensor), list(model.effects)), est
+    sensor = cfg.sensor.model_copy(update={"noise": est.noise})
+    return LineModel(cfg.model_copy(update={"sensor": sensor}), list(model.effects)), est

@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from schemas.line import LineConfig
 from twin_core.closeloop.record import LineRecord
 from twin_core.closeloop.report import Finding, online_finding
-from twin_core.plant.config import LineConfig
 from twin_core.plant.model import LineInputs, LineModel
 
 
@@ -54,7 +54,7 @@ class OnlineCloseLoop:
     """Windows of a running line -> :class:`Finding` s (see the module docstring).
 
     Args:
-        config: the declared line (feeders, blender, sensor).
+        config: the declared line (``schemas.line.LineConfig``; a ``LineSpec`` is one).
         dt_s: tick of the flow stream, s.
         interval_s, window_s, min_window_s, skip_s: as ``schemas.line.CloseLoopSettings``.
         candidates: effect names tried (empty: all registered effects).
@@ -92,7 +92,7 @@ class OnlineCloseLoop:
         self.skip_s = float(skip_s)
         self.candidates = list(candidates)
         self.max_effects = int(max_effects)
-        self.components = {f.name: f.component for f in config.feeders}
+        self.components = config.components
         self.model_ = LineModel(config, list(effects))
         self.record = LineRecord(self.components, self.dt_s, config.sensor.component)
         self._next_due: int | None = None

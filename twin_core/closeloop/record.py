@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 
+from schemas.line import TracerPulse
 from twin_core.closeloop.data import RunData
 from twin_core.online.inlet import FeederSample, InletAligner, event_record, tracer_pulse
-from twin_core.plant.config import TracerPulse
 from twin_core.plant.model import LineInputs
 
 __all__ = ["LineRecord", "REFILL_EVENTS"]

@@ -19,7 +19,6 @@ import numpy as np
 from twin_core.closeloop.data import RunData
 from twin_core.closeloop.diagnostics import pulse_responses, residual_diagnostics
 from twin_core.closeloop.identify import FitResult, Identification, IdentifyOptions, identify
-from twin_core.plant.config import line_config_to_dict
 from twin_core.plant.model import LineInputs, LineModel
 
 REPORT_VERSION = 1
@@ -190,7 +189,7 @@ class CloseLoopResult:
                 "diagnostics_before": self.diagnostics_before,
                 "diagnostics_after": self.diagnostics_after,
                 "augmented_model": {
-                    "config": line_config_to_dict(self.model.config),
+                    "config": self.model.config.line_dict(),
                     "effects": [e.to_dict() for e in aug.effects],
                 },
                 "n_model_evaluations": idn.n_eval,

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from twin_core.plant.config import FlowDisturbance, LineConfig, TracerPulse, seed_line
+from schemas.line import LineConfig
+from twin_core.plant.seed import seed_line
+from twin_core.plant.simulate import FlowDisturbance
 
 #: magnitudes per effect used by the tests and the confusion benchmark ("small" .. "large")
 EFFECT_MAGNITUDES: dict[str, list[dict[str, float]]] = {
@@ -60,4 +62,4 @@ def effect_spec(name: str, level: int) -> dict[str, Any]:
     return {"name": name, "target": EFFECT_TARGETS.get(name), "params": dict(mags[level])}
 
 
-__all__ = ["EFFECT_MAGNITUDES", "EFFECT_TARGETS", "TracerPulse", "effect_spec", "standard_scenario"]
+__all__ = ["EFFECT_MAGNITUDES", "EFFECT_TARGETS", "effect_spec", "standard_scenario"]

@@ -31,10 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.line import LineSpec
+from schemas.line import LineSpec, TracerPulse
 from twin_core.online.convolution import StreamingConvolver
 from twin_core.online.inlet import FeederSample, InletStream, InletTick, tracer_pulse
-from twin_core.plant.config import TracerPulse
 from twin_core.plant.effects import Effect, make_effect
 from twin_core.rtd.models import model_e
 
@@ -120,14 +119,15 @@ class BlenderKernel:
         """E(t) of the RTD model with the adopted rtd-stage effects, on the tick grid. An
         adopted effect may lengthen the tail (a dead zone of tau_s up to 600 s): E(t) is kept
         until less than 1e-7 of its mass is left out (at most ``MAX_KERNEL_S``)."""
-        from twin_core.plant.config import BlenderSpec
+        from schemas.line import BlenderModelConfig
         from twin_core.plant.model import rtd_kernel
 
         assert self.rtd_model is not None
         model, params = self.rtd_model
         n = int(np.ceil(self.length_s / self.dt))
         n_max = max(n, int(np.ceil(self.MAX_KERNEL_S / self.dt)))
-        e = rtd_kernel(BlenderSpec(model, dict(params)), np.arange(n_max) * self.dt, self.effects)
+        blender = BlenderModelConfig(model=model, params=dict(params))
+        e = rtd_kernel(blender, np.arange(n_max) * self.dt, self.effects)
         tail = self.dt * (e.sum() - np.cumsum(e))
         n_need = int(np.argmax(tail < 1e-7)) + 1 if np.any(tail < 1e-7) else n_max
         return e[: max(n, n_need)]
@@ -235,7 +235,8 @@ class BlenderPredictor:
         announced (history after a restart)."""
         if component not in self.comp_names:
             raise ValueError(f"component must be one of {self.comp_names}, got {component!r}")
-        late = self.inlet.add_pulse(TracerPulse(t_s, mass_kg, component, duration_s), carry=False)
+        pulse = TracerPulse(t_s=t_s, mass_kg=mass_kg, component=component, duration_s=duration_s)
+        late = self.inlet.add_pulse(pulse, carry=False)
         if late is None:
             return False
         if late and self.conv is not None and self._last_tick is not None:

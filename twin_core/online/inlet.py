@@ -29,7 +29,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-from twin_core.plant.config import TracerPulse
+from schemas.line import TracerPulse
 from twin_core.plant.model import pulse_bin_flow
 
 __all__ = [
@@ -177,7 +177,9 @@ def tracer_pulse(event: Mapping[str, Any], default_duration_s: float = 1.0) -> T
     if dur is None or not math.isfinite(float(dur)) or float(dur) <= 0:
         dur = default_duration_s
     comp = event.get("component") or event.get("source")
-    return TracerPulse(float(event["t_s"]), float(mass), str(comp), float(dur))
+    return TracerPulse(
+        t_s=float(event["t_s"]), mass_kg=float(mass), component=str(comp), duration_s=float(dur)
+    )
 
 
 class TracerInjector:

@@ -219,9 +219,10 @@ class OosCore:
     def tracer_pulse(self, component: str, t: float, mass_kg: float, duration_s: float) -> bool:
         """An announced tracer pulse: its mass enters the inlet composition (funnel, tracing).
         Returns False for a pulse already announced (history after a restart)."""
-        from twin_core.plant.config import TracerPulse
+        from schemas.line import TracerPulse
 
-        return self.inlet.add_pulse(TracerPulse(t, mass_kg, component, duration_s)) is not None
+        pulse = TracerPulse(t_s=t, mass_kg=mass_kg, component=component, duration_s=duration_s)
+        return self.inlet.add_pulse(pulse) is not None
 
     def add_event(self, event: Mapping) -> bool:
         """A plant event (dict form, ``twin_core.online.inlet.event_record``); returns whether

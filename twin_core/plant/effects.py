@@ -25,7 +25,7 @@ from typing import Any, ClassVar
 import numpy as np
 from scipy.signal import lfilter
 
-from twin_core.plant.config import BlenderSpec
+from schemas.line import BlenderModelConfig
 
 
 @dataclass(frozen=True)
@@ -122,7 +122,7 @@ class Effect:
         """rtd stage: change the blender model parameters before E(t) is evaluated."""
         return params
 
-    def apply_rtd(self, tk: np.ndarray, e: np.ndarray, blender: BlenderSpec) -> np.ndarray:
+    def apply_rtd(self, tk: np.ndarray, e: np.ndarray, blender: BlenderModelConfig) -> np.ndarray:
         """rtd stage: transform E(t) sampled on ``tk`` (uniform, from 0)."""
         return e
 
@@ -189,7 +189,7 @@ class DeadZone(Effect):
         ),
     )
 
-    def apply_rtd(self, tk: np.ndarray, e: np.ndarray, blender: BlenderSpec) -> np.ndarray:
+    def apply_rtd(self, tk: np.ndarray, e: np.ndarray, blender: BlenderModelConfig) -> np.ndarray:
         f = self.values["fraction"]
         if f == 0.0:
             return e
@@ -217,7 +217,7 @@ class Bypass(Effect):
     )
     BYPASS_TAU_S: ClassVar[float] = 3.0
 
-    def apply_rtd(self, tk: np.ndarray, e: np.ndarray, blender: BlenderSpec) -> np.ndarray:
+    def apply_rtd(self, tk: np.ndarray, e: np.ndarray, blender: BlenderModelConfig) -> np.ndarray:
         b = self.values["fraction"]
         if b == 0.0:
             return e
@@ -247,7 +247,7 @@ class ExtraDelay(Effect):
         ),
     )
 
-    def apply_rtd(self, tk: np.ndarray, e: np.ndarray, blender: BlenderSpec) -> np.ndarray:
+    def apply_rtd(self, tk: np.ndarray, e: np.ndarray, blender: BlenderModelConfig) -> np.ndarray:
         d = self.values["delay_s"]
         return e if d == 0.0 else _shift(tk, e, d)
 

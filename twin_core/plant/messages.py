@@ -23,22 +23,10 @@ import numpy as np
 
 from schemas import keys
 from schemas.line import LineSpec
-from schemas.messages import Event, FeederFlow, MeasuredConcentration
-from twin_core.plant.config import FeederSpec
+from schemas.messages import FeederFlow, MeasuredConcentration
 from twin_core.plant.simulate import FeederRecord, LineRun, simulate_feeder, simulate_line
 
 __all__ = ["feeder_flow_messages", "run_messages", "simulate_messages"]
-
-#: event kinds of the simulator -> wire event kinds
-_EVENT_KINDS = {
-    "refill_start": "refill_start",
-    "refill_stop": "refill_stop",
-    "tracer_pulse": "tracer_pulse",
-    "disturbance": "disturbance",
-    "disturbance_end": "disturbance_end",
-    "disturbance_start": "disturbance",
-    "disturbance_stop": "disturbance_end",
-}
 
 #: tie-break order of messages of one plant time: flows (by feeder), NIR, events
 _ORDER_NIR = 100
@@ -96,20 +84,9 @@ def run_messages(run: LineRun, spec: LineSpec) -> list[tuple[str, Any]]:
         )
         out.append((t[i], _ORDER_NIR, nk, msg))
     feeders = {f.id for f in spec.feeders}
-    for n, ev in enumerate(run.events):
+    for ev in run.events:  # the simulator's events are the wire messages
         unit = "feeder" if ev.source in feeders else "plant"
-        d = dict(ev.detail)
-        msg = Event(
-            t=float(ev.t_s),
-            seq=n,
-            kind=_EVENT_KINDS.get(ev.kind, "note"),
-            source=ev.source,
-            mass_kg=d.get("mass_kg"),
-            duration_s=d.get("duration_s"),
-            magnitude=d.get("delta_kg_h"),
-            detail=ev.kind,
-        )
-        out.append((float(ev.t_s), _ORDER_EVENT, keys.event(line, unit, ev.source), msg))
+        out.append((ev.t, _ORDER_EVENT, keys.event(line, unit, ev.source), ev))
     return _ordered(out)
 
 
@@ -122,7 +99,7 @@ def simulate_messages(
 ) -> tuple[LineRun, list[tuple[str, Any]]]:
     """Simulate the line of ``spec`` (``simulate_line``); return (run, messages)."""
     run = simulate_line(
-        spec.plant_config(),
+        spec,
         duration_s,
         dt_s=spec.dt_s,
         seed=seed,
@@ -138,13 +115,6 @@ def feeder_flow_messages(spec: LineSpec, duration_s: float) -> list[tuple[str, F
     dt = spec.dt_s
     n = int(duration_s / dt) + 1
     records = {
-        f.id: simulate_feeder(
-            FeederSpec(f.id, f.component, f.setpoint_kg_h, dict(f.liw), f.ideal),
-            duration_s,
-            dt,
-            n,
-            seed=i,
-        )
-        for i, f in enumerate(spec.feeders)
+        f.id: simulate_feeder(f, duration_s, dt, n, seed=i) for i, f in enumerate(spec.feeders)
     }
     return _ordered(_flows(np.arange(n) * dt, records, spec))

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from twin_core.plant.config import BlenderSpec, LineConfig, TracerPulse
+from schemas.line import BlenderModelConfig, LineConfig, TracerPulse
 from twin_core.plant.effects import Effect, make_effect
 
 
@@ -33,9 +33,9 @@ from twin_core.plant.effects import Effect, make_effect
 class LineInputs:
     """What the twin sees of the line: reported feeder flows, refill flags, tracer pulses.
 
-    t_s: uniform grid (s); flows_kg_h: feeder name -> reported flow (kg/h) on t_s;
-    components: feeder name -> component; refilling: feeder name -> bool array (may be empty);
-    tracers: tracer pulses (their mass enters the inlet); screw_speed_rpm: feeder name ->
+    t_s: uniform grid (s); flows_kg_h: feeder id -> reported flow (kg/h) on t_s;
+    components: feeder id -> component; refilling: feeder id -> bool array (may be empty);
+    tracers: tracer pulses (their mass enters the inlet); screw_speed_rpm: feeder id ->
     screw speed on t_s (diagnostics only; may be empty).
     """
 
@@ -77,7 +77,9 @@ class LineInputs:
         return float(self.t_s[1] - self.t_s[0])
 
 
-def rtd_kernel(blender: BlenderSpec, tk: np.ndarray, effects: Sequence[Effect] = ()) -> np.ndarray:
+def rtd_kernel(
+    blender: BlenderModelConfig, tk: np.ndarray, effects: Sequence[Effect] = ()
+) -> np.ndarray:
     """E(t) of the blender on ``tk`` (uniform from 0) with the rtd-stage effects applied.
 
     The base E is ``twin_core.rtd.models.model_e(blender.model, params, tk)`` (the one E(t)
@@ -110,6 +112,15 @@ def pulse_bin_flow(
     t = np.asarray(t, dtype=float)
     overlap = np.clip(np.minimum(t + 0.5 * dt, t1) - np.maximum(t - 0.5 * dt, t0), 0.0, None)
     return rate * overlap / dt
+
+
+def require_rtd_blender(config: LineConfig) -> None:
+    """The declared line model convolves with an RTD model: ``blender.kind`` must be ``rtd``
+    (a compartment export is the live blender service's alternative, not a declared model)."""
+    if config.blender.kind != "rtd":
+        raise ValueError(
+            f"blender.kind must be 'rtd' for the declared line model, got {config.blender.kind!r}"
+        )
 
 
 def _inlet_parts(
@@ -148,7 +159,7 @@ def inlet_component_flows(
 
 def outlet_concentration(
     inputs: LineInputs,
-    blender: BlenderSpec,
+    blender: BlenderModelConfig,
     effects: Sequence[Effect] = (),
 ) -> dict[str, np.ndarray]:
     """Outlet mass fraction of every component, % w/w, c_i = 100 (E*m_i)/(E*sum m).
@@ -193,7 +204,7 @@ def sensor_signal(
 
 @dataclass
 class LineModel:
-    """The declared model of a line (from a :class:`LineConfig`), optionally augmented.
+    """The declared model of a line (a ``schemas.line.LineConfig``), optionally augmented.
 
     ``predict(inputs)`` returns the expected NIR reading of ``config.sensor.component`` on
     inputs.t_s; ``outlet(inputs)`` all outlet concentrations. ``effects`` are structural
@@ -204,6 +215,7 @@ class LineModel:
     effects: list[Effect] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        require_rtd_blender(self.config)
         self.effects = [make_effect(e) for e in self.effects]
 
     def augmented(self, effects: Sequence[Effect | Mapping]) -> LineModel:

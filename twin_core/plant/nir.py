@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from twin_core.plant.config import NIRNoise
+from schemas.line import NIRNoise
 
 
 def pink_noise(n: int, rng: np.random.Generator, alpha: float = 1.0) -> np.ndarray:

@@ -27,16 +27,39 @@ from typing import Any
 
 import numpy as np
 
-from twin_core.plant.config import FlowDisturbance, LineConfig, line_config_to_dict
+from schemas.line import FeederLine, LineConfig, NIRNoise, TracerPulse
+from schemas.messages import Event
 from twin_core.plant.effects import Effect, make_effect
 from twin_core.plant.model import (
     LineInputs,
     LineModel,
     inlet_component_flows,
     outlet_concentration,
+    require_rtd_blender,
     sensor_signal,
 )
 from twin_core.plant.nir import add_nir_noise
+
+
+@dataclass
+class FlowDisturbance:
+    """A known change of one feeder's flow: ``delta_kg_h`` added during [t_s, t_s + duration_s).
+
+    ``duration_s = inf`` is a step. It is an input the twin sees (the feeder reports it).
+    """
+
+    feeder: str
+    t_s: float
+    delta_kg_h: float
+    duration_s: float = math.inf
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.t_s) and self.t_s >= 0):
+            raise ValueError(f"disturbance.t_s must be >= 0, got {self.t_s!r}")
+        if not math.isfinite(self.delta_kg_h):
+            raise ValueError(f"disturbance.delta_kg_h must be finite, got {self.delta_kg_h!r}")
+        if not self.duration_s > 0:
+            raise ValueError(f"disturbance.duration_s must be > 0, got {self.duration_s!r}")
 
 
 @dataclass
@@ -44,7 +67,7 @@ class FeederRecord:
     """One feeder on the run grid. ``flow_kg_h`` is what the feeder reports (twin input);
     ``delivered_kg_h`` what really entered the blender (differs under hidden feeder effects)."""
 
-    name: str
+    id: str
     component: str
     flow_kg_h: np.ndarray
     delivered_kg_h: np.ndarray
@@ -56,29 +79,15 @@ class FeederRecord:
 
 
 @dataclass
-class Event:
-    """Something that happened at ``t_s``: kind in {refill_start, refill_stop, tracer_pulse,
-    disturbance, disturbance_end} (the wire contract's
-    ``schemas.messages.EventKind`` names); ``source`` the feeder/component; ``detail`` values."""
-
-    t_s: float
-    kind: str
-    source: str
-    detail: dict[str, Any] = field(default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"t_s": self.t_s, "kind": self.kind, "source": self.source, "detail": self.detail}
-
-
-@dataclass
 class LineRun:
     """Result of :func:`simulate_line`.
 
-    t_s: uniform grid; feeders: name -> :class:`FeederRecord`; outlet_true_pct_w_w: component
+    t_s: uniform grid; feeders: feeder id -> :class:`FeederRecord`; outlet_true_pct_w_w: component
     -> true outlet concentration; sensor_component; sensor_true_pct_w_w: noise-free probe signal
     (sensor effects and baseline included); measured_pct_w_w: NIR reading (NaN between samples
     when the sample period exceeds dt); outliers: mask of injected outliers; events; effects:
-    ground truth of the hidden effects (dict form); disturbances; config; seed.
+    ground truth of the hidden effects (dict form); disturbances; config; seed. ``events`` are
+    the wire contract's ``schemas.messages.Event`` (refills, disturbances, tracer pulses).
     """
 
     t_s: np.ndarray
@@ -114,23 +123,26 @@ class LineRun:
             "duration_s": float(self.t_s[-1] - self.t_s[0]),
             "dt_s": float(self.t_s[1] - self.t_s[0]),
             "n": int(self.t_s.size),
-            "config": line_config_to_dict(self.config),
+            "config": self.config.line_dict(),
             "effects": self.effects,
-            "events": [e.to_dict() for e in self.events],
+            "events": [e.model_dump(mode="json") for e in self.events],
             "seed": self.seed,
         }
 
 
-def simulate_feeder(spec, duration_s: float, dt_s: float, n: int, seed) -> FeederRecord:
+def simulate_feeder(
+    spec: FeederLine, duration_s: float, dt_s: float, n: int, seed: np.random.Generator | int
+) -> FeederRecord:
     """One feeder of the line on ``n`` ticks of ``dt_s``: the LIW simulator
-    (``twin_core.feeder.LossInWeightFeeder``) run at its control period, each tick the mean flow
-    of its sub-steps, the screw speed, hopper mass and feed factor at the tick's start and the
-    refill flag up if any sub-step refilled; an ``ideal`` feeder runs at its set point."""
+    (``twin_core.feeder.LossInWeightFeeder``, configured by ``spec.liw_config()``) run at its
+    control period, each tick the mean flow of its sub-steps, the screw speed, hopper mass and
+    feed factor at the tick's start and the refill flag up if any sub-step refilled; an
+    ``ideal`` feeder runs at its set point."""
     t = np.arange(n) * dt_s
     if spec.ideal:
         q = np.full(n, spec.setpoint_kg_h)
         return FeederRecord(
-            spec.name,
+            spec.id,
             spec.component,
             q,
             q.copy(),
@@ -141,15 +153,14 @@ def simulate_feeder(spec, duration_s: float, dt_s: float, n: int, seed) -> Feede
         )
     from twin_core.feeder import LossInWeightFeeder
 
-    kw = {"name": spec.name, "setpoint_kg_h": spec.setpoint_kg_h, **spec.liw}
-    feeder = LossInWeightFeeder(**kw)
+    feeder = LossInWeightFeeder(spec.liw_config())
     cp = float(feeder.config.control_period_s)
     sub = max(1, int(math.ceil(dt_s / cp - 1e-9)))
     fdt = dt_s / sub
     tr = feeder.simulate(duration_s + dt_s, fdt, seed=seed)
     m = n * sub
     if tr.t_s.size < m:
-        raise ValueError(f"feeder {spec.name}: trace too short ({tr.t_s.size} < {m})")
+        raise ValueError(f"feeder {spec.id}: trace too short ({tr.t_s.size} < {m})")
 
     def bin_mean(a: np.ndarray) -> np.ndarray:
         return np.asarray(a[:m], dtype=float).reshape(n, sub).mean(axis=1)
@@ -158,7 +169,7 @@ def simulate_feeder(spec, duration_s: float, dt_s: float, n: int, seed) -> Feede
     refilling = np.asarray(tr.refilling[:m]).reshape(n, sub).any(axis=1)
     idx = np.arange(n) * sub
     return FeederRecord(
-        spec.name,
+        spec.id,
         spec.component,
         flow,
         flow.copy(),
@@ -187,13 +198,14 @@ def simulate_line(
     """
     if not isinstance(config, LineConfig):
         raise ValueError(f"config must be a LineConfig, got {type(config).__name__}")
+    require_rtd_blender(config)
     if not (math.isfinite(duration_s) and duration_s > 0):
         raise ValueError(f"duration_s must be > 0, got {duration_s!r}")
     if not (math.isfinite(dt_s) and 0 < dt_s <= duration_s):
         raise ValueError(f"dt_s must be in (0, duration_s], got {dt_s!r}")
     effs = [make_effect(e) for e in effects]
     dists = [d if isinstance(d, FlowDisturbance) else FlowDisturbance(**d) for d in disturbances]
-    names = [f.name for f in config.feeders]
+    names = [f.id for f in config.feeders]
     for e in effs:
         if e.stage == "feeder" and e.target is not None and e.target not in names:
             raise ValueError(f"effect {e.name}.target must be one of {names}, got {e.target!r}")
@@ -207,31 +219,13 @@ def simulate_line(
     children = ss.spawn(len(config.feeders) + 1)
 
     feeders: dict[str, FeederRecord] = {}
-    events: list[Event] = []
     for spec, child in zip(config.feeders, children[:-1]):
-        rec = simulate_feeder(spec, duration_s, dt_s, n, np.random.default_rng(child))
-        feeders[spec.name] = rec
-        for a, b in rec.refills:
-            events.append(Event(a, "refill_start", spec.name))
-            events.append(Event(b, "refill_stop", spec.name))
-
+        feeders[spec.id] = simulate_feeder(spec, duration_s, dt_s, n, np.random.default_rng(child))
     for d in dists:
         rec = feeders[d.feeder]
         on = (t >= d.t_s) & (t < d.t_s + d.duration_s)
         rec.flow_kg_h = np.maximum(rec.flow_kg_h + np.where(on, d.delta_kg_h, 0.0), 0.0)
-        events.append(Event(d.t_s, "disturbance", d.feeder, {"delta_kg_h": d.delta_kg_h}))
-        if math.isfinite(d.duration_s):
-            events.append(Event(d.t_s + d.duration_s, "disturbance_end", d.feeder))
-    for p in config.tracers:
-        events.append(
-            Event(
-                p.t_s,
-                "tracer_pulse",
-                p.component,
-                {"mass_kg": p.mass_kg, "duration_s": p.duration_s},
-            )
-        )
-    events.sort(key=lambda e: e.t_s)
+    events = _line_events(feeders, dists, config.tracers)
 
     run_inputs = LineInputs(
         t_s=t,
@@ -279,8 +273,62 @@ def simulate_line(
     )
 
 
-def _noise_without_offset(noise):
-    """The baseline offset is already in the sensor signal; the random part only."""
-    from dataclasses import replace
+def _line_events(
+    feeders: Mapping[str, FeederRecord],
+    disturbances: Sequence[FlowDisturbance],
+    tracers: Sequence[TracerPulse],
+) -> list[Event]:
+    """The run's events as the line reports them (``schemas.messages.Event``, numbered in time
+    order): hopper refills (source: the feeder), disturbances and their ends (source: the
+    feeder, ``magnitude``: the flow change in kg/h) and tracer pulses (source: the component)."""
+    rows: list[dict[str, Any]] = []
+    for fid, rec in feeders.items():
+        for a, b in rec.refills:
+            for t_s, kind in ((a, "refill_start"), (b, "refill_stop")):
+                rows.append(
+                    dict(
+                        t=t_s,
+                        kind=kind,
+                        source=fid,
+                        component=rec.component,
+                        detail="hopper refill",
+                    )
+                )
+    for d in disturbances:
+        comp = feeders[d.feeder].component
+        rows.append(
+            dict(
+                t=d.t_s,
+                kind="disturbance",
+                source=d.feeder,
+                component=comp,
+                magnitude=d.delta_kg_h,
+                duration_s=d.duration_s if math.isfinite(d.duration_s) else None,
+                detail=f"{d.delta_kg_h:+g} kg/h flow change",
+            )
+        )
+        if math.isfinite(d.duration_s):
+            rows.append(
+                dict(
+                    t=d.t_s + d.duration_s, kind="disturbance_end", source=d.feeder, component=comp
+                )
+            )
+    for p in tracers:
+        rows.append(
+            dict(
+                t=p.t_s,
+                kind="tracer_pulse",
+                source=p.component,
+                component=p.component,
+                mass_kg=p.mass_kg,
+                duration_s=p.duration_s,
+                detail=f"{p.mass_kg * 1000:g} g {p.component} tracer pulse",
+            )
+        )
+    rows.sort(key=lambda r: r["t"])
+    return [Event(seq=i, **r) for i, r in enumerate(rows)]
 
-    return replace(noise, baseline_offset=0.0)
+
+def _noise_without_offset(noise: NIRNoise) -> NIRNoise:
+    """The baseline offset is already in the sensor signal; the random part only."""
+    return noise.model_copy(update={"baseline_offset": 0.0})
