@@ -12,7 +12,8 @@ import time
 
 import numpy as np
 
-from twin_core.mixing import Frame, GridSpec, MixingConfig, compute_indices
+from twin_core.dem.frames import Frame
+from twin_core.mixing import GridSpec, MixingConfig, compute_indices
 from twin_core.mixing.distance_indices import siiria_index
 
 
@@ -28,7 +29,7 @@ def frames(n=6000, n_frames=200, seed=0):
     radii = np.full(n, 1.0e-3)
     out, pos = [], pos0.copy()
     for k in range(n_frames):
-        out.append(Frame(0.1 * k, ids, types, radii, pos.copy()))
+        out.append(Frame(0.1 * k, ids, types, radii, pos.copy(), np.zeros_like(pos)))
         sel = rng.choice(n, n // 50, replace=False)
         pos[sel] = pos[rng.permutation(sel)]
     return out, box

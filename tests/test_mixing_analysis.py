@@ -9,9 +9,8 @@ rises, Table 4.2), and the Lacey progress, which for a random swap of fraction f
 import numpy as np
 import pytest
 
-from twin_core.dem.frames import Frame as DemFrame
-from twin_core.dem.frames import FrameWriter
-from twin_core.mixing import Frame, GridSpec, MixingConfig
+from twin_core.dem.frames import Frame, FrameWriter
+from twin_core.mixing import GridSpec, MixingConfig
 from twin_core.mixing.analysis import analyze, plot_analysis, plot_t95_by_speed, t95_by_speed
 
 R = 1e-3
@@ -37,7 +36,7 @@ def run(k, seed=0, t_end=12.0, dt=0.2):
         sel = np.sort(order[: int((1 - np.exp(-k * t)) * n)])
         pos = pos0.copy()
         pos[sel] = pos0[rng.permutation(sel)]
-        frames.append(Frame(float(t), np.arange(n), types, np.full(n, R), pos))
+        frames.append(Frame(float(t), np.arange(n), types, np.full(n, R), pos, np.zeros_like(pos)))
     grid = GridSpec((0, 0, 0), tuple(size), (1, 8, 8))
     return frames, MixingConfig(grid=grid, box=(size[0], np.inf, np.inf), ah_axis=1, sm_pairs=5000)
 
@@ -82,9 +81,7 @@ def test_cli_compute_on_frames_directory(tmp_path):
     }
     with FrameWriter(tmp_path / "frames", chunk_frames=8, meta=meta) as w:
         for f in frames:
-            w.append(
-                DemFrame(f.t, f.ids, f.types, f.radii, f.positions, np.zeros_like(f.positions))
-            )
+            w.append(f)
     out = tmp_path / "out"
     rc = main(["mixing", "compute", str(tmp_path / "frames"), "--indices", "LI,RSD,CN,SI",
                "--out", str(out)])  # fmt: skip

@@ -10,9 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from twin_core.dem.frames import Frame
 from twin_core.mixing import (
     INDEX_NAMES,
-    Frame,
     GridSpec,
     MixingConfig,
     compute_indices,
@@ -43,7 +43,7 @@ def bed():
     types = (pos[:, 1] >= np.median(pos[:, 1])).astype(int)  # tracer (0) on the left half
     grid = GridSpec((0, 0, 0), (lx, 0.04, 0.03), (1, 8, 8))
     cfg = MixingConfig(grid=grid, box=(lx, np.inf, np.inf), ah_axis=1, sm_pairs=20_000)
-    return Frame(0.0, np.arange(n), types, np.full(n, R), pos), cfg
+    return Frame(0.0, np.arange(n), types, np.full(n, R), pos, np.zeros_like(pos)), cfg
 
 
 def test_segregated_bed_gives_unmixed_bounds(bed):
@@ -90,7 +90,7 @@ def test_unequal_fraction_contact_statistics(bed):
     rng = np.random.default_rng(3)
     p = 0.3
     types = (rng.random(len(f0.ids)) >= p).astype(int)
-    fr = Frame(0.0, f0.ids, types, f0.radii, f0.positions)
+    fr = Frame(0.0, f0.ids, types, f0.radii, f0.positions, f0.velocities)
     row = compute_indices([fr], ["CN", "SI", "NNM"], cfg).iloc[0]
     assert row["CN"] == pytest.approx(2 * p * (1 - p) / (p**2 + (1 - p) ** 2), rel=0.05)
     assert row["NNM"] == pytest.approx(4 * p * (1 - p), rel=0.05)
@@ -107,7 +107,7 @@ def test_growing_swapped_fraction_moves_every_index_toward_mixed(bed):
         sel = order[: int(frac * n)]
         pos = f0.positions.copy()
         pos[sel] = f0.positions[rng.permutation(sel)]
-        frames.append(Frame(float(k), f0.ids, f0.types, f0.radii, pos))
+        frames.append(Frame(float(k), f0.ids, f0.types, f0.radii, pos, f0.velocities))
     df = compute_indices(frames, "all", cfg)
     prog = mixing_progress(df, mixed_reference(f0, "all", cfg, n_shuffles=3))
     for name in INDEX_NAMES:
@@ -147,7 +147,7 @@ def test_error_paths(bed):
         GridSpec.parse("8by8", (0, 0, 0), (1, 1, 1))
     with pytest.raises(ValueError, match="hi must exceed lo"):
         GridSpec((0, 0, 0), (1, 0, 1))
-    other = Frame(1.0, f0.ids + 1, f0.types, f0.radii, f0.positions)
+    other = Frame(1.0, f0.ids + 1, f0.types, f0.radii, f0.positions, f0.velocities)
     with pytest.raises(ValueError, match="same particle ids"):
         compute_indices([f0, other], ["LI"], cfg)
     with pytest.raises(ValueError, match="tracer type 5"):
@@ -166,7 +166,9 @@ def test_dataframe_columns(bed):
 def test_lost_particles_are_refused_or_dropped_and_reported(bed):
     f0, cfg = bed
     keep = np.arange(len(f0.ids)) != 5
-    f1 = Frame(1.0, f0.ids[keep], f0.types[keep], f0.radii[keep], f0.positions[keep])
+    f1 = Frame(
+        1.0, f0.ids[keep], f0.types[keep], f0.radii[keep], f0.positions[keep], f0.velocities[keep]
+    )
     with pytest.raises(ValueError, match="same particle ids"):
         compute_indices([f0, f1], ["LI"], cfg)
     df = compute_indices([f0, f1], ["LI", "SI"], cfg, allow_lost=True)

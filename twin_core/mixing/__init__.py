@@ -1,11 +1,14 @@
-"""Mixing indices and T95 mixing times (seed chapter 4)."""
+"""Mixing indices and T95 mixing times (seed chapter 4).
+
+The indices are computed on particle frames, ``twin_core.dem.frames.Frame`` (the one frame
+type: the DEM engine writes it, the mixing analysis reads it).
+"""
 
 from twin_core.mixing.grid import GridSpec, cell_counts, occupied_cells
 from twin_core.mixing.properties import index_properties, select_indices
 from twin_core.mixing.series import (
     DIRECTION,
     INDEX_NAMES,
-    Frame,
     MixingConfig,
     compute_indices,
     mixed_reference,
@@ -15,7 +18,7 @@ from twin_core.mixing.series import (
 from twin_core.mixing.t95 import T95Fit, fit_t95, t95_time
 
 __all__ = [
-    "DIRECTION", "INDEX_NAMES", "Frame", "GridSpec", "MixingConfig", "T95Fit", "cell_counts",
+    "DIRECTION", "INDEX_NAMES", "GridSpec", "MixingConfig", "T95Fit", "cell_counts",
     "compute_indices", "fit_t95", "index_properties", "mixed_reference", "mixing_progress",
     "occupied_cells", "select_indices", "shuffled_frame", "t95_time",
 ]  # fmt: skip

@@ -1,8 +1,8 @@
 """Mixing indices over a sequence of particle frames.
 
-A frame is any object with attributes ``t`` (s), ``ids``, ``types``, ``radii`` and
-``positions`` ``(N, 3)`` (m) -- e.g. the frames of :mod:`twin_core.dem.frames` or
-:class:`Frame`. Frames are aligned by particle id to the first frame, which is the reference
+A frame is a :class:`twin_core.dem.frames.Frame` (``t`` in s, ``ids``, ``types``, ``radii``,
+``positions`` and ``velocities`` ``(N, 3)``, SI) -- the indices read every attribute but the
+velocities. Frames are aligned by particle id to the first frame, which is the reference
 ("initial, segregated") state of VRR, NDM and SM.
 """
 
@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from twin_core.dem.frames import Frame
 from twin_core.mixing import contact_indices as ci
 from twin_core.mixing import distance_indices as di
 from twin_core.mixing import variance_indices as vi
@@ -30,17 +31,6 @@ DIRECTION: dict[str, int] = {
     "LI": 1, "RSD": -1, "VRR": 1, "VBBC": -1, "ESI": -1, "ME": 1, "DM": 1, "MSI": -1, "SM": 1,
     "AH": -1, "NDM": 1, "NNM": 1, "PS": 1, "CN": 1, "SI": -1,
 }  # fmt: skip
-
-
-@dataclass
-class Frame:
-    """One snapshot of the particles (SI units)."""
-
-    t: float
-    ids: np.ndarray
-    types: np.ndarray
-    radii: np.ndarray
-    positions: np.ndarray
 
 
 @dataclass
@@ -80,7 +70,7 @@ def _parse_indices(indices: str | Sequence[str]) -> list[str]:
     return out
 
 
-def _aligned(frame, order_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _aligned(frame: Frame, order_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     ids = np.asarray(frame.ids)
     sort = np.argsort(ids, kind="stable")
     if len(ids) != len(order_ids) or not np.array_equal(ids[sort], order_ids):
@@ -94,7 +84,7 @@ def _aligned(frame, order_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     )
 
 
-def _common_subset(frames: list) -> tuple[list, int]:
+def _common_subset(frames: list[Frame]) -> tuple[list[Frame], int]:
     """Frames restricted to the particle ids present in every frame, and the number dropped."""
     common = np.asarray(frames[0].ids)
     for f in frames[1:]:
@@ -104,13 +94,14 @@ def _common_subset(frames: list) -> tuple[list, int]:
         keep = np.isin(np.asarray(f.ids), common)
         out.append(
             Frame(float(f.t), np.asarray(f.ids)[keep], np.asarray(f.types)[keep],
-                  np.asarray(f.radii)[keep], np.asarray(f.positions)[keep])
+                  np.asarray(f.radii)[keep], np.asarray(f.positions)[keep],
+                  np.asarray(f.velocities)[keep])
         )  # fmt: skip
     return out, len(frames[0].ids) - len(common)
 
 
 def compute_indices(
-    frames: Iterable,
+    frames: Iterable[Frame],
     indices: str | Sequence[str] = "all",
     config: MixingConfig | None = None,
     allow_lost: bool = False,
@@ -247,8 +238,9 @@ class _Reference:
         return out
 
 
-def shuffled_frame(frame, seed: int | np.random.Generator = 0) -> Frame:
-    """The frame with particle positions randomly permuted among the particles.
+def shuffled_frame(frame: Frame, seed: int | np.random.Generator = 0) -> Frame:
+    """The frame with particle positions (and their velocities) randomly permuted among the
+    particles.
 
     This is the random mixture of the same bed (same cells, same contacts, same geometry):
     the "mixed" reference of every index at once.
@@ -258,11 +250,12 @@ def shuffled_frame(frame, seed: int | np.random.Generator = 0) -> Frame:
     return Frame(
         float(frame.t), np.asarray(frame.ids), np.asarray(frame.types),
         np.asarray(frame.radii), np.asarray(frame.positions)[perm],
+        np.asarray(frame.velocities)[perm],
     )  # fmt: skip
 
 
 def mixed_reference(
-    frame,
+    frame: Frame,
     indices: str | Sequence[str] = "all",
     config: MixingConfig | None = None,
     n_shuffles: int = 5,
