@@ -11,7 +11,8 @@ import pytest
 
 from twin_core.dem.frames import Frame, FrameWriter
 from twin_core.mixing import GridSpec, MixingConfig
-from twin_core.mixing.analysis import analyze, plot_analysis, plot_t95_by_speed, t95_by_speed
+from twin_core.mixing.analysis import analyze, t95_by_speed
+from twin_core.mixing.plots import plot_analysis, plot_t95_by_speed
 
 R = 1e-3
 

@@ -1,7 +1,8 @@
 """Mixing indices and T95 mixing times (seed chapter 4).
 
 The indices are computed on particle frames, ``twin_core.dem.frames.Frame`` (the one frame
-type: the DEM engine writes it, the mixing analysis reads it).
+type: the DEM engine writes it, the mixing analysis reads it); the figures of an analysis are
+drawn by ``twin_core.mixing.plots``.
 """
 
 from twin_core.mixing.grid import GridSpec, cell_counts, occupied_cells

@@ -43,7 +43,8 @@ def mixing_of_frames(
 
     from twin_core.dem.frames import FrameReader
     from twin_core.mixing import GridSpec, MixingConfig
-    from twin_core.mixing.analysis import analyze, plot_analysis
+    from twin_core.mixing.analysis import analyze
+    from twin_core.mixing.plots import plot_analysis
 
     reader = FrameReader(frames_dir)
     meta = reader.meta
@@ -111,7 +112,8 @@ def blender_mixing(
     ``schemas.dem_scene`` config) from the runs of ``twin dem run`` in ``runs_dir``, written to
     ``out_dir`` (per speed ``indices_<rpm>rpm.csv``, ``t95_<rpm>rpm.csv``,
     ``mixing_indices_<rpm>rpm.png``; ``t95_by_speed.csv`` and ``.png``); returns the table."""
-    from twin_core.mixing.analysis import plot_analysis, plot_t95_by_speed, t95_by_speed
+    from twin_core.mixing.analysis import t95_by_speed
+    from twin_core.mixing.plots import plot_analysis, plot_t95_by_speed
 
     if cfg.scene != "blender":
         raise ValueError(f"scene must be a blender scene, got {cfg.scene!r}")

@@ -3,7 +3,7 @@
 The scene's runs (a blender section per blade speed; a drawdown test; a feeder run-out and its
 refills; a silo discharge: ``twin_core.scenes.<scene>.run``) into ``out_dir``, then what the
 scene's ``output`` asks for: the geometry as STL, snapshots of the first and last frames and the
-scene's curves (``twin_core.scenes.figures``), the frames as VTK (``particles.pvd``), and
+scene's curves (``twin_core.scenes.plots``), the frames as VTK (``particles.pvd``), and
 ``summary.json`` with the scalar results of each run.
 """
 
@@ -46,13 +46,13 @@ def _frame_outputs(cfg: Any, runs: list[Run]) -> None:
     """Snapshots of the first and last frames; the frames as VTK."""
     from twin_core.dem.frames import FrameReader
     from twin_core.dem.vtk import write_particles_vtp, write_pvd
-    from twin_core.scenes import figures
+    from twin_core.scenes import plots
 
     for _name, _res, d in runs:
         fr = FrameReader(d / "frames")
         if cfg.output.figures and len(fr):
-            figures.snapshot(d / "snapshot_start.png", fr[0], cfg.name)
-            figures.snapshot(d / "snapshot_end.png", fr[-1], cfg.name)
+            plots.snapshot(d / "snapshot_start.png", fr[0], cfg.name)
+            plots.snapshot(d / "snapshot_end.png", fr[-1], cfg.name)
         if cfg.output.vtk and len(fr):
             (d / "vtk").mkdir(exist_ok=True)
             entries = []
@@ -63,13 +63,13 @@ def _frame_outputs(cfg: Any, runs: list[Run]) -> None:
 
 
 def _blender_figures(runs: list[Run], out: Path) -> None:
-    from twin_core.scenes import figures
+    from twin_core.scenes import plots
 
     series = []
     for name, _res, d in runs:
         z = np.load(d / "mixing.npz")
         series.append((z["t"], z["lacey"], name))
-    figures.curves(
+    plots.curves(
         out / "mixing_lacey.png", series, "mixing time (s)", "Lacey index (1x8x8)", "blender mixing"
     )
     hist = []
@@ -79,7 +79,7 @@ def _blender_figures(runs: list[Run], out: Path) -> None:
             h, e = np.histogram(tr, bins=30, density=True)
             hist.append((0.5 * (e[1:] + e[:-1]), h, name))
     if hist:
-        figures.curves(
+        plots.curves(
             out / "transit_rtd.png",
             hist,
             "transit time over the period (s)",
@@ -90,9 +90,9 @@ def _blender_figures(runs: list[Run], out: Path) -> None:
 
 def _feeder_figures(runs: list[Run], out: Path) -> None:
     from twin_core.feeder.feed_factor import feed_factor
-    from twin_core.scenes import figures
+    from twin_core.scenes import plots
 
-    figures.curves(
+    plots.curves(
         out / "flow_rate.png",
         [(r["flow_t_s"], r["flow_kg_s"], n) for n, r, _ in runs],
         "t (s)",
@@ -105,7 +105,7 @@ def _feeder_figures(runs: list[Run], out: Path) -> None:
     if "ff_max" in fit and len(ffc["w_active_kg"]):
         w = np.asarray(ffc["w_active_kg"])
         wf = np.linspace(0, w.max(), 100)
-        figures.xy_fit(
+        plots.xy_fit(
             d / "feed_factor.png",
             w,
             ffc["ff_g_rev"],
@@ -117,7 +117,7 @@ def _feeder_figures(runs: list[Run], out: Path) -> None:
         )
     refills = [(n, r) for n, r, _ in runs if r.get("refill_level") is not None]
     if refills:
-        figures.curves(
+        plots.curves(
             out / "outlet_fraction_type2.png",
             [(r["flow_t_s"], r["outlet_fraction_type2"], n) for n, r in refills],
             "t (s)",
@@ -127,21 +127,21 @@ def _feeder_figures(runs: list[Run], out: Path) -> None:
 
 
 def _drawdown_figures(runs: list[Run]) -> None:
-    from twin_core.scenes import figures
+    from twin_core.scenes import plots
 
     _, res, d = runs[0]
     series = [(res["flow_t_s"], res["flow_kg_s"], "opening")]
-    figures.curves(d / "flow_rate.png", series, "t (s)", "flow rate (kg/s)", "drawdown flow")
-    figures.heap_profiles(d / "heap_profiles.png", res)
+    plots.curves(d / "flow_rate.png", series, "t (s)", "flow rate (kg/s)", "drawdown flow")
+    plots.heap_profiles(d / "heap_profiles.png", res)
 
 
 def _silo_figures(runs: list[Run]) -> None:
-    from twin_core.scenes import figures
+    from twin_core.scenes import plots
 
     _, res, d = runs[0]
     series = [(res["flow_t_s"], res["flow_kg_s"], "orifice")]
     beverloo = (res["beverloo_rate_kg_s"], "Beverloo")
-    figures.curves(
+    plots.curves(
         d / "flow_rate.png", series, "t (s)", "discharge (kg/s)", "silo discharge", hline=beverloo
     )
 
