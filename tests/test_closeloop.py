@@ -22,7 +22,6 @@ from twin_core.closeloop import (
     RunData,
     close_loop,
     dm_test,
-    hampel,
     heldout_lr_test,
     make_split,
     online_finding,
@@ -31,6 +30,7 @@ from twin_core.closeloop import (
 from twin_core.closeloop.scenarios import EFFECT_MAGNITUDES, effect_spec, standard_scenario
 from twin_core.online.inlet import event_record
 from twin_core.plant import LineModel, add_nir_noise, simulate_line
+from twin_core.rtd.outliers import hampel
 
 DURATION = 1500.0
 
@@ -99,14 +99,17 @@ def test_dm_test_detects_better_model_and_not_equal_ones():
 
 
 def test_hampel_removes_isolated_outliers_only():
-    """Pearson (2002) Hampel identifier: spikes replaced, a smooth peak untouched."""
+    """Pearson (2002) Hampel filter as the close-loop uses it (``variant="pearson"``): spikes
+    replaced by the window median, a smooth peak untouched, NaN gaps kept and not flagged."""
     t = np.arange(300.0)
     y = 10 + 8 * np.exp(-(((t - 150) / 12.0) ** 2))
     z = y.copy()
     z[[40, 200]] += [5.0, -4.0]
-    f, m = hampel(z)
-    assert m[40] and m[200] and m.sum() == 2
-    np.testing.assert_allclose(f, y, atol=1e-9)
+    z[[100, 101]] = np.nan
+    r = hampel(z, variant="pearson")
+    assert r.mask[40] and r.mask[200] and r.count == 2
+    np.testing.assert_allclose(r.y[~np.isnan(z)], y[~np.isnan(z)], atol=1e-9)
+    assert np.isnan(r.y[[100, 101]]).all()
 
 
 def test_split_windows():

@@ -94,6 +94,23 @@ def test_hampel_finds_injected_outliers():
         hampel(y, 0)
     with pytest.raises(ValueError, match="y must be finite"):
         hampel(np.r_[y[:5], np.nan])
+    with pytest.raises(ValueError, match="variant must be"):
+        hampel(y, variant="mean")
+
+
+def test_hampel_variants_replace_by_interpolation_or_by_the_window_median():
+    """The two uses of the one Hampel identifier, on a convex curve y = x^2 with one upward
+    spike (exact arithmetic): the seed variant interpolates linearly between the neighbours,
+    (y[i-1] + y[i+1]) / 2 = y[i] + 1; the Pearson variant takes the median of the window, whose
+    samples are increasing with the spike on top: the fourth smallest, y[i+1]."""
+    x = np.arange(40.0)
+    y = x**2
+    z = y.copy()
+    z[20] += 5000.0
+    seed, pearson = hampel(z), hampel(z, variant="pearson")
+    assert seed.indices.tolist() == pearson.indices.tolist() == [20]
+    assert seed.y[20] == y[20] + 1.0 and pearson.y[20] == y[21]
+    np.testing.assert_array_equal(pearson.mask, np.arange(40) == 20)
 
 
 def test_noise_characterization_recovers_components():

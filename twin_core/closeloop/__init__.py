@@ -1,6 +1,8 @@
 """Close the loop: residuals, candidate effects, identification, before/after reports.
 
-- ``data``: :class:`RunData` (arrays of a recording), training / held-out splits, Hampel filter;
+- ``data``: :class:`RunData` (arrays of a recording), training / held-out splits, event
+  markers; outliers of the NIR record are removed by the project's one Hampel filter,
+  ``twin_core.rtd.outliers.hampel`` (``variant="pearson"``: NaN gaps kept);
 - ``diagnostics``: residual bias, trend, autocorrelation, spectrum, cross-correlation with
   inputs and events, pulse fronts and tails;
 - ``effects``: the candidate-effect registry (:data:`EFFECTS`, defined in
@@ -11,7 +13,7 @@
 - ``scenarios``: the standard excitation scenario and effect magnitudes used for validation.
 """
 
-from twin_core.closeloop.data import RunData, Split, hampel, make_split
+from twin_core.closeloop.data import RunData, Split, make_split
 from twin_core.closeloop.diagnostics import pulse_responses, residual_diagnostics
 from twin_core.closeloop.identify import (
     Candidate,
@@ -41,7 +43,6 @@ __all__ = [
     "candidate_list",
     "close_loop",
     "dm_test",
-    "hampel",
     "heldout_lr_test",
     "identify",
     "make_effect",

@@ -118,27 +118,3 @@ def make_split(
     if train.sum() < 10 or held.sum() < 10:
         raise ValueError("split leaves fewer than 10 samples in a window")
     return Split(train, held, kind, desc)
-
-
-def hampel(
-    y: np.ndarray, half_window: int = 3, n_sigma: float = 4.0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Hampel filter (Pearson 2002; the seed's "outlier removal before denoising", 6.1.3.1).
-
-    A sample further than ``n_sigma`` * 1.4826 * MAD from the median of its
-    (2 half_window + 1)-sample neighbourhood is replaced by that median. NaN samples are kept.
-    Returns (filtered, outlier mask).
-    """
-    y = np.asarray(y, dtype=float)
-    out = y.copy()
-    n = y.size
-    w = 2 * half_window + 1
-    if n < w:
-        return out, np.zeros(n, dtype=bool)
-    pad = np.pad(y, half_window, mode="edge")
-    win = np.lib.stride_tricks.sliding_window_view(pad, w)
-    med = np.nanmedian(win, axis=1)
-    mad = 1.4826 * np.nanmedian(np.abs(win - med[:, None]), axis=1)
-    mask = np.isfinite(y) & (np.abs(y - med) > n_sigma * np.maximum(mad, 1e-12))
-    out[mask] = med[mask]
-    return out, mask

@@ -57,10 +57,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, stats
 
-from twin_core.closeloop.data import RunData, Split, hampel, make_split
+from twin_core.closeloop.data import RunData, Split, make_split
 from twin_core.plant.effects import EFFECTS, Effect
 from twin_core.plant.model import LineModel, outlet_concentration, sensor_signal
 from twin_core.plant.nir import noise_sd
+from twin_core.rtd.outliers import hampel
 
 
 @dataclass(frozen=True)
@@ -446,7 +447,8 @@ def identify(
         raise ValueError(f"select must be 'bic_all' or 'heldout', got {opt.select!r}")
     if not 0 < opt.alpha < 1:
         raise ValueError(f"alpha must be in (0, 1), got {opt.alpha}")
-    y, outl = hampel(data.measured)
+    cleaned = hampel(data.measured, variant="pearson")
+    y, outl = cleaned.y, cleaned.mask
     finite = np.isfinite(y)
     split = make_split(data.t_s, opt.split, opt.train_fraction, opt.block_s, opt.skip_s)
     train = split.train & finite

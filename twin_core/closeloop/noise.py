@@ -28,8 +28,9 @@ from scipy.optimize import nnls
 from scipy.signal import periodogram
 
 from schemas.line import LineConfig, NIRNoise
-from twin_core.closeloop.data import RunData, hampel
+from twin_core.closeloop.data import RunData
 from twin_core.plant.model import LineModel, rtd_kernel
+from twin_core.rtd.outliers import hampel
 
 
 @dataclass
@@ -104,7 +105,7 @@ def estimate_nir_noise(
     fx, px, wts = [], [], []
     decl_var = []
     for a, b in segs:
-        seg, _ = hampel(r[a:b])
+        seg = hampel(r[a:b], variant="pearson").y
         f, p = periodogram(seg, fs=fs, detrend="constant", scaling="density")
         fx.append(f[1:])
         px.append(p[1:])
