@@ -19,12 +19,12 @@ from twin_core.plant import (
     FlowDisturbance,
     LineModel,
     make_effect,
-    pink_noise,
     rtd_kernel,
     seed_line,
     simulate_line,
 )
 from twin_core.rtd.models import axial_dispersion_open
+from twin_core.rtd.noise import pink_noise
 
 QUIET = NIRNoise(
     white_sd=0.0, pink_sd=0.0, proportional_rel=0.0, outlier_prob=0.0, baseline_offset=0.0
@@ -124,11 +124,13 @@ def test_nir_baseline_statistics_match_seed():
 
 
 def test_pink_noise_has_one_over_f_spectrum():
-    """Timmer & Koenig (1995) shaping: log-log periodogram slope of -1 (alpha = 1)."""
+    """The NIR probe's pink part (twin_core.rtd.noise.pink_noise), Timmer & Koenig (1995)
+    shaping: log-log periodogram slope of -1, zero mean and the requested standard deviation."""
     rng = np.random.default_rng(0)
     slopes = []
     for _ in range(20):
-        x = pink_noise(4096, rng)
+        x = pink_noise(4096, 0.07, rng)
+        assert abs(x.mean()) < 1e-12 and x.std() == pytest.approx(0.07, rel=1e-12)
         f = np.fft.rfftfreq(x.size)[1:]
         p = np.abs(np.fft.rfft(x))[1:] ** 2
         slopes.append(np.polyfit(np.log(f), np.log(p), 1)[0])

@@ -223,7 +223,7 @@ class NoiseCovariance:
     """Quadratic form delta' C delta of the declared NIR noise covariance on a record.
 
     C = diag(white_sd^2 + (proportional_rel * |p|)^2) + pink_sd^2 C_pink, with C_pink the
-    covariance of the unit-variance 1/f process of ``twin_core.plant.nir.pink_noise`` over the
+    covariance of the unit-variance 1/f process of ``twin_core.rtd.noise.pink_noise`` over the
     record: delta' C_pink delta = sum_k a_k^2 |D_k|^2 / sum_k a_k^2, D = rfft(delta),
     a_k^2 = 1/f_k (periodic stationary process; exact for the generator up to its
     standardisation).

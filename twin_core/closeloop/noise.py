@@ -15,7 +15,7 @@ segments the one-sided spectral density is fitted by non-negative least squares 
 white + proportional pair (the probe's signal hardly moves in quiet segments, so the two cannot
 be told apart there: both are scaled by one factor, keeping the declared shape), and p1 gives
 the 1/f standard deviation over the whole record, pink_sd^2 = p1 H(N/2) with H the harmonic
-number (the discrete band 1/N .. 1/2 of ``twin_core.plant.nir.pink_noise``).
+number (the discrete band 1/N .. 1/2 of ``twin_core.rtd.noise.pink_noise``).
 """
 
 from __future__ import annotations

@@ -8,7 +8,8 @@ noise, tracers: the one line / feeder / blender / sensor configuration model, a
 - ``model``: :class:`LineModel`, the declared model predicting the probe reading from the
   feeders' reported flows (mass-flow-weighted RTD convolution);
 - ``effects``: registry of candidate effects (structural additions to the model);
-- ``nir``: the seed's NIR noise (white, pink, proportional, outliers, baseline offset);
+- ``nir``: the seed's NIR noise (white, pink, proportional, outliers, baseline offset; the pink
+  part is ``twin_core.rtd.noise.pink_noise``);
 - ``simulate``: :func:`simulate_line` producing a :class:`LineRun` (its events are the wire
   contract's ``schemas.messages.Event``, the one event type).
 """
@@ -22,7 +23,7 @@ from twin_core.plant.model import (
     rtd_kernel,
     sensor_signal,
 )
-from twin_core.plant.nir import add_nir_noise, pink_noise
+from twin_core.plant.nir import add_nir_noise
 from twin_core.plant.seed import seed_line
 from twin_core.plant.simulate import FeederRecord, FlowDisturbance, LineRun, simulate_line
 
@@ -39,7 +40,6 @@ __all__ = [
     "inlet_component_flows",
     "make_effect",
     "outlet_concentration",
-    "pink_noise",
     "register",
     "rtd_kernel",
     "seed_line",

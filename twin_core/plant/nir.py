@@ -3,9 +3,9 @@
 measured(t) = signal(t) + baseline_offset + white + pink + proportional_rel * |signal| * N(0, 1)
               + outliers
 
-with white ~ N(0, white_sd^2) i.i.d., pink a 1/f process (power spectral density ~ 1/f, made
-by shaping the spectrum of white noise, Timmer & Koenig 1995, A&A 300:707) rescaled to
-standard deviation ``pink_sd``, and outliers: with probability ``outlier_prob`` per sample a
+with white ~ N(0, white_sd^2) i.i.d., pink a 1/f process of standard deviation ``pink_sd``
+(``twin_core.rtd.noise.pink_noise``: the spectrum of white noise shaped, Timmer & Koenig 1995,
+A&A 300:707), and outliers: with probability ``outlier_prob`` per sample a
 Laplace-distributed spike of scale ``outlier_sd / sqrt(2)`` (standard deviation outlier_sd).
 The seed reports baseline statistics beyond t = 120 s of mean -0.03 to -0.074 and standard
 deviation 0.125 to 0.132 % w/w (SEED_NOTES); the defaults of ``NIRNoise`` give -0.05 / 0.122.
@@ -16,27 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from schemas.line import NIRNoise
-
-
-def pink_noise(n: int, rng: np.random.Generator, alpha: float = 1.0) -> np.ndarray:
-    """Zero-mean, unit-variance noise with power spectral density ~ 1/f^alpha.
-
-    Spectral shaping (Timmer & Koenig 1995): complex Gaussian Fourier coefficients with
-    amplitude f^(-alpha/2) for f > 0, zero mean (DC = 0), inverse real FFT, standardised.
-    """
-    if n < 0:
-        raise ValueError(f"n must be >= 0, got {n}")
-    if n < 2:
-        return np.zeros(n)
-    f = np.fft.rfftfreq(n)
-    amp = np.zeros_like(f)
-    amp[1:] = f[1:] ** (-alpha / 2.0)
-    coef = amp * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
-    if n % 2 == 0:
-        coef[-1] = coef[-1].real * np.sqrt(2.0)
-    x = np.fft.irfft(coef, n)
-    sd = x.std()
-    return (x - x.mean()) / sd if sd > 0 else x
+from twin_core.rtd.noise import pink_noise
 
 
 def add_nir_noise(
@@ -51,7 +31,7 @@ def add_nir_noise(
     n = s.size
     y = s + noise.baseline_offset
     y = y + noise.white_sd * rng.standard_normal(n)
-    y = y + noise.pink_sd * pink_noise(n, rng)
+    y = y + (pink_noise(n, noise.pink_sd, rng) if n >= 2 else np.zeros(n))
     y = y + noise.proportional_rel * np.abs(np.nan_to_num(s)) * rng.standard_normal(n)
     outliers = rng.random(n) < noise.outlier_prob
     if outliers.any():

@@ -38,9 +38,14 @@ def white_noise(n: int, std: float, seed: int | np.random.Generator | None = Non
 
 
 def pink_noise(n: int, std: float, seed: int | np.random.Generator | None = None) -> NDArray:
-    """1/f (pink) Gaussian noise of standard deviation `std` by spectral shaping: complex
-    Gaussian Fourier coefficients scaled by f^(-1/2), zero mean (Timmer & Koenig 1995,
-    A&A 300, 707)."""
+    """1/f (pink) Gaussian noise of standard deviation ``std`` (the project's one pink-noise
+    generator: RTD profiles and the plant's NIR probe).
+
+    Spectral shaping (Timmer & Koenig 1995, A&A 300, 707): complex Gaussian Fourier
+    coefficients with amplitude f^(-1/2) for f > 0, zero at f = 0; for even n the Nyquist
+    coefficient is real and scaled by sqrt(2) to keep the power of its bin; inverse real FFT,
+    standardised to zero mean and unit standard deviation, times ``std``.
+    """
     if std < 0:
         raise ValueError(f"std must be >= 0, got {std!r}")
     n = int(n)
@@ -48,14 +53,14 @@ def pink_noise(n: int, std: float, seed: int | np.random.Generator | None = None
         raise ValueError(f"n must be >= 2, got {n!r}")
     rng = _rng(seed)
     f = np.fft.rfftfreq(n)
-    coef = rng.normal(size=f.size) + 1j * rng.normal(size=f.size)
-    coef[0] = 0.0
-    coef[1:] /= np.sqrt(f[1:])
+    amp = np.zeros_like(f)
+    amp[1:] = f[1:] ** -0.5
+    coef = amp * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
     if n % 2 == 0:
-        coef[-1] = coef[-1].real
+        coef[-1] = coef[-1].real * np.sqrt(2.0)
     x = np.fft.irfft(coef, n)
     sd = x.std()
-    return x * (std / sd) if sd > 0 else x
+    return (x - x.mean()) / sd * std if sd > 0 else x
 
 
 def synthesize(
