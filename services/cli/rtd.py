@@ -114,7 +114,7 @@ def _range(spec: str, name: str) -> np.ndarray:
 
 
 def _dumps(obj: dict, **kw) -> str:
-    from twin_core.rtd.analysis import json_default
+    from twin_core.quality.analysis import json_default
 
     return json.dumps(obj, default=json_default, **kw)
 
@@ -129,7 +129,7 @@ def _fail(exc: Exception) -> int:
 
 
 def _analyze(args: argparse.Namespace) -> int:
-    from twin_core.rtd.analysis import analyze_profile
+    from twin_core.quality.analysis import analyze_profile
     from twin_core.rtd.plots import plot_profile
 
     try:
@@ -148,7 +148,7 @@ def _analyze(args: argparse.Namespace) -> int:
 
 
 def _funnel(args: argparse.Namespace) -> int:
-    from twin_core.rtd.analysis import profile_funnels
+    from twin_core.quality.analysis import profile_funnels
     from twin_core.rtd.plots import plot_funnel_difference, plot_funnels
     from twin_core.rtd.profiles import load_csv
 
@@ -197,7 +197,7 @@ def _lots(args: argparse.Namespace) -> int:
 
 
 def _reproduce(args: argparse.Namespace) -> int:
-    from twin_core.rtd.reproduce import reproduce_chapter6
+    from twin_core.quality.reproduce import reproduce_chapter6
 
     try:
         meta = reproduce_chapter6(args.out, args.seed, args.repeats, sys.stderr.isatty())

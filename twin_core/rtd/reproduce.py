@@ -1,30 +1,26 @@
 """Reproduction of the seed's chapter 6 analyses on the synthetic campaign.
 
-Every table function returns pandas DataFrames / dicts; :func:`reproduce_chapter6` runs them
-all on a seeded campaign and writes the CSV tables, figures and a summary to the directory it is
-given (``twin rtd reproduce``).
+Every table function returns pandas DataFrames; ``twin_core.quality.reproduce.reproduce_chapter6``
+runs them with the quality analyses on a seeded campaign (``twin rtd reproduce``).
 
 - :func:`denoise_table` - Table 6.1: the seed's metrics per denoising method, averaged over
   the three repeats of each tracer amount, with errors against the known truth;
 - :func:`truncation_table` - Table 6.2 (+ the PAT row of Table 6.3): AD fits of the 10 g runs
   truncated at 0-10 % of the peak, ANOVA and Tukey letters, next to noise-free fits of the
   truncated truth;
-- :func:`funnel_cases` - Fig. 6.16 A-D: funnel overlays for tail, time and level truncation;
-- :func:`oos_curve` - Fig. 6.17: % increase of OOS tablets vs relative truncation level;
-- :func:`lot_table` - 6.1.4.3.1: lot boundaries of original, denoised and true profiles;
 - :func:`noise_table` - 6.1.3.2: noise components estimated from the residual to an AD fit.
+
+The analyses that go on to quality decisions (funnels, OOS increase, lot boundaries: Fig. 6.16,
+6.17, 6.1.4.3.1) build on these and live in ``twin_core.quality.reproduce``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from twin_core.quality.funnel import FunnelResult, compare_funnels, funnel, oos_increase_curve
-from twin_core.quality.lots import lot_boundaries
 from twin_core.rtd import denoise as D
 from twin_core.rtd.fitting import fit
 from twin_core.rtd.metrics import denoise_metrics, truth_metrics
@@ -34,27 +30,18 @@ from twin_core.rtd.profiles import e_curve
 from twin_core.rtd.stats import compare_groups
 from twin_core.rtd.synthetic import SyntheticRun
 from twin_core.rtd.truncation import (
-    baseline_correct,
     pat_level,
     truncate_level,
-    truncate_pat,
     truncate_relative,
-    truncate_time,
-    two_peak_profiles,
 )
 
 __all__ = [
     "SEED_METHODS",
     "REL_LEVELS",
-    "DURATIONS",
-    "INTENSITIES",
     "clean",
     "apply_method",
     "denoise_table",
     "truncation_table",
-    "funnel_cases",
-    "oos_curve",
-    "lot_table",
     "noise_table",
 ]
 
@@ -70,8 +57,6 @@ SEED_METHODS: dict[str, dict] = {
     "WT-SURE-auto": {"method": "auto_wavelet"},
 }
 REL_LEVELS = (0.0, 0.0125, 0.025, 0.0375, 0.05, 0.075, 0.1)
-DURATIONS = np.linspace(0.0, 60.0, 200)
-INTENSITIES = np.linspace(0.0, 50.0, 200)
 
 
 def clean(run: SyntheticRun) -> np.ndarray:
@@ -191,111 +176,6 @@ def truncation_table(
     return long, summary
 
 
-def _funnel(t: np.ndarray, y: np.ndarray) -> FunnelResult:
-    return funnel(t, e_curve(t, y), DURATIONS, INTENSITIES)
-
-
-def funnel_cases(run: SyntheticRun) -> dict[str, dict[str, FunnelResult]]:
-    """Fig. 6.16: funnels for (A) two tails, (B) time truncation at 50 s, (C) low and (D) high
-    absolute truncation levels (% w/w), on the WT-denoised run; plus the true profile."""
-    t = run.t
-    y = D.denoise(clean(run), "wavelet").y
-    c1, c2 = two_peak_profiles(t)
-    out: dict[str, dict[str, FunnelResult]] = {
-        "A_tails": {"C1": _funnel(t, c1), "C2": _funnel(t, c2)},
-        "B_time": {
-            "original": _funnel(t, y),
-            "truncated 50 s": _funnel(t, truncate_time(t, y, 50.0)),
-        },
-        "C_low_levels": {
-            f"{lv:g} % w/w": _funnel(t, truncate_level(y, lv)) for lv in (0.125, 0.25, 0.375, 0.5)
-        },
-        "D_high_levels": {
-            f"{lv:g} % w/w": _funnel(t, truncate_level(y, lv)) for lv in (0.5, 1.0, 1.5, 2.0)
-        },
-        "truth": {
-            "true": _funnel(t, run.c_true),
-            "denoised": _funnel(t, y),
-            "raw": _funnel(t, clean(run)),
-        },
-    }
-    return out
-
-
-def funnel_summary(cases: dict[str, dict[str, FunnelResult]]) -> pd.DataFrame:
-    """Feasible area of each funnel and its change against the case's first funnel."""
-    rows = []
-    for case, fs in cases.items():
-        ref = next(iter(fs.values()))
-        for label, f in fs.items():
-            c = compare_funnels(ref, f)
-            rows.append(
-                {
-                    "case": case,
-                    "label": label,
-                    "feasible_area": f.feasible_area,
-                    "feasible_fraction": f.feasible_fraction,
-                    "oos_increase_pct_vs_first": c["oos_increase_pct"],
-                    "feasible_iou_vs_first": c["feasible_iou"],
-                    "max_abs_dev_diff_vs_first": c["max_abs_deviation_difference"],
-                }
-            )
-    return pd.DataFrame(rows)
-
-
-def oos_curve(
-    runs: Iterable[SyntheticRun], levels: tuple[float, ...] = REL_LEVELS[1:]
-) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Fig. 6.17: truncate at a fraction of the peak -> WT-denoise -> funnel -> % increase of
-    OOS tablets against the untruncated denoised profile. Three variants: the seed's workflow
-    on the measured profile, the same after baseline-offset correction, and the noise-free
-    truth."""
-    rows = []
-    wt = lambda v: D.denoise(v, "wavelet").y  # noqa: E731 - the seed smooths with WT
-    kw = {"durations": DURATIONS, "intensities": INTENSITIES}
-    for run in runs:
-        y = clean(run)
-        a = oos_increase_curve(run.t, y, levels, wt, **kw)
-        b = oos_increase_curve(run.t, baseline_correct(run.t, y), levels, wt, **kw)
-        c = oos_increase_curve(run.t, run.c_true, levels, None, **kw)
-        for i, lv in enumerate(levels):
-            rows.append(
-                {
-                    "run": run.name,
-                    "level": lv,
-                    "oos_increase_pct": a[i],
-                    "oos_increase_pct_baseline_corrected": b[i],
-                    "oos_increase_pct_truth": c[i],
-                }
-            )
-    long = pd.DataFrame(rows)
-    cols = ["oos_increase_pct", "oos_increase_pct_baseline_corrected", "oos_increase_pct_truth"]
-    summary = long.groupby("level")[cols].agg(["mean", "std"])
-    summary.columns = ["_".join(c) for c in summary.columns]
-    return long, summary.reset_index()
-
-
-def lot_table(runs: Iterable[SyntheticRun]) -> pd.DataFrame:
-    """0.5 % / 99.5 % lot boundaries of raw (cleaned), WT-denoised, WT-denoised and PAT-truncated
-    (mu + 3 sigma) and true profiles (negative values clipped to 0 for F to be monotone)."""
-    rows = []
-    for run in runs:
-        y = clean(run)
-        yd = D.denoise(y, "wavelet").y
-        row = {"run": run.name}
-        variants = (
-            ("raw", np.clip(y, 0, None)),
-            ("denoised", np.clip(yd, 0, None)),
-            ("denoised_pat", truncate_pat(run.t, yd)),
-            ("true", run.c_true),
-        )
-        for name, c in variants:
-            lo, hi = lot_boundaries(run.t, c)
-            row[f"t_lo_{name}"], row[f"t_hi_{name}"] = lo, hi
-        rows.append(row)
-    return pd.DataFrame(rows)
-
-
 def noise_table(runs: Iterable[SyntheticRun]) -> pd.DataFrame:
     """Noise components from the residual to an AD fit (free scale) of each cleaned run."""
     rows = []
@@ -307,70 +187,3 @@ def noise_table(runs: Iterable[SyntheticRun]) -> pd.DataFrame:
             {"run": run.name, **rep.as_dict(), **{f"{k}_true": v for k, v in run.noise.items()}}
         )
     return pd.DataFrame(rows)
-
-
-def reproduce_chapter6(
-    out_dir: str | Path, seed: int = 0, repeats: int = 3, progress: bool = False
-) -> dict[str, object]:
-    """The seed's chapter 6 on a synthetic campaign (``twin_core.rtd.synthetic``, ``repeats``
-    runs per tracer amount, seeded), written to ``out_dir``: the tables above as CSV, their
-    figures (``twin_core.rtd.plots``) and ``reproduce.json`` (runs, ANOVA p-values, files);
-    returns that summary."""
-    import json
-
-    from tqdm import tqdm
-
-    from twin_core.rtd import plots
-    from twin_core.rtd.analysis import json_default
-    from twin_core.rtd.synthetic import CampaignConfig, generate_campaign
-
-    if repeats < 2:
-        raise ValueError(f"repeats must be >= 2, got {repeats}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    runs = generate_campaign(seed, CampaignConfig(repeats=repeats))
-    ten = [r for r in runs if r.amount_g == 10.0]  # the seed's truncation runs
-    steps = tqdm(total=5, desc="reproduce", disable=not progress)
-
-    long, summ = denoise_table(runs)
-    long.to_csv(out / "table_6_1_runs.csv", index=False)
-    summ.to_csv(out / "table_6_1.csv", index=False)
-    y = clean(runs[0])
-    shown = {name: apply_method(y, SEED_METHODS[name]) for name in ("SA", "WT", "SV", "FFT")}
-    plots.plot_denoising(runs[0], y, shown, summ).savefig(out / "table_6_1.png", dpi=120)
-    steps.update()
-
-    l2, s2 = truncation_table(ten)
-    l2.to_csv(out / "table_6_2_runs.csv", index=False)
-    s2.to_csv(out / "table_6_2.csv", index=False)
-    plots.plot_truncation(s2).savefig(out / "table_6_2.png", dpi=120)
-    steps.update()
-
-    cases = funnel_cases(ten[0])
-    funnel_summary(cases).to_csv(out / "fig_6_16_funnels.csv", index=False)
-    rows: dict[str, object] = {"duration_s": DURATIONS}
-    for case, fs in cases.items():
-        for label, f in fs.items():
-            rows[f"{case}:{label}"] = f.h_crit
-    pd.DataFrame(rows).to_csv(out / "fig_6_16_boundaries.csv", index=False)
-    plots.plot_funnel_cases(cases).savefig(out / "fig_6_16.png", dpi=120)
-    steps.update()
-
-    l3, s3 = oos_curve(ten)
-    l3.to_csv(out / "fig_6_17_runs.csv", index=False)
-    s3.to_csv(out / "fig_6_17.csv", index=False)
-    plots.plot_oos_curve(s3).savefig(out / "fig_6_17.png", dpi=120)
-    steps.update()
-
-    lot_table(runs).to_csv(out / "lots.csv", index=False)
-    noise_table(runs).to_csv(out / "noise.csv", index=False)
-    steps.update()
-    steps.close()
-    meta = {
-        "seed": seed,
-        "runs": [r.name for r in runs],
-        "anova_p": s2.attrs.get("anova_p", {}),
-        "files": sorted(p.name for p in out.iterdir()),
-    }
-    (out / "reproduce.json").write_text(json.dumps(meta, indent=2, default=json_default))
-    return meta

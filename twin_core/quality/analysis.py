@@ -1,5 +1,6 @@
 """Analysis of measured tracer profiles as one library call each (``twin rtd analyze`` and
-``twin rtd funnel``).
+``twin rtd funnel``): the RTD processing of ``twin_core.rtd`` carried on to lot boundaries and
+funnels, hence in this package (``twin_core.rtd`` imports nothing from it).
 
 :func:`analyze_profile`: raw moments (seed Eqs. 3-4); Hampel outliers
 (``twin_core.rtd.outliers.hampel``); denoising (``twin_core.rtd.denoise``, with the seed's
