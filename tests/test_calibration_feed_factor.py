@@ -9,12 +9,12 @@ import pytest
 from twin_core.calibration import ResponseSurface, load_seed_table
 from twin_core.calibration.feed_factor import (
     SEED_EQ14_TERMS,
+    config_from_material,
     feed_factor_parameters,
     fit_feed_factor_surfaces,
     parity_table,
 )
 from twin_core.feeder import LossInWeightFeeder
-from twin_core.feeder.material import config_from_material
 
 
 @pytest.fixture(scope="module")

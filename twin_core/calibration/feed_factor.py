@@ -4,7 +4,8 @@ The seed fitted Eq. (2) to the feed factor vs hopper mass curve of each of the 2
 runs of the Table 3.2 design (Table 8.1), then regressed FF_max, FF_min and beta on the
 material parameters by the same stepwise procedure as the bulk responses (Eqs. 14-16,
 section 3.3.2.4). :func:`fit_feed_factor_surfaces` repeats that;
-:func:`feed_factor_parameters` evaluates the surfaces at a material parameter set.
+:func:`feed_factor_parameters` evaluates the surfaces at a material parameter set and
+:func:`config_from_material` turns them into a loss-in-weight feeder configuration.
 
 Notes on the seed's equations: Eq. (14) (FF_max) is centred on the 21-run means (0.35,
 0.05287); Eqs. (15)-(16) are centred on 0.3456 / 0.0526 / 0.3978, the means over 23 runs, so
@@ -15,14 +16,19 @@ values the seed does not list. They cannot be reproduced from the published tabl
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
+
+from schemas.feeder import FeederConfig
+from twin_core.feeder.material import config_with_feed_factor
 
 from .rsm import Criterion, ResponseSurface, TwoStepRSM
 from .tables import SEED_FACTORS, SEED_FF_RESPONSES
 
 __all__ = [
+    "config_from_material",
     "fit_feed_factor_surfaces",
     "feed_factor_parameters",
     "parity_table",
@@ -78,3 +84,34 @@ def parity_table(model: TwoStepRSM | ResponseSurface) -> pd.DataFrame:
     return pd.DataFrame(
         {"actual": m.actual_, "predicted": m.fitted_, "residual": m.actual_ - m.fitted_}
     ).assign(within_2rmse=lambda d: np.abs(d.residual) <= 2 * m.rmse_)
+
+
+def config_from_material(
+    material: Mapping[str, float],
+    surfaces: Mapping[str, TwoStepRSM | ResponseSurface],
+    base: FeederConfig | None = None,
+    ff_to_g_rev: float = 1000.0,
+    mass_scale: float = 1.0,
+    **overrides: Any,
+) -> FeederConfig:
+    """Feeder config whose FF(W) comes from feed-factor response surfaces (seed Eqs. 14-16,
+    see :func:`fit_feed_factor_surfaces`) evaluated at DEM
+    material parameters.
+
+    ``ff_to_g_rev`` converts the surfaces' feed-factor unit to g/rev (default 1000: the seed's
+    DEM feed factors, 0.02-0.07, read as kg per screw revolution for a hopper of ~1 kg,
+    which matches its 150,000 1-mm particles emptying in ~20 s at 100 rpm). ``mass_scale``
+    stretches the hopper-mass axis from the DEM hopper to the real one (beta / mass_scale).
+    """
+    if ff_to_g_rev <= 0:
+        raise ValueError(f"ff_to_g_rev must be > 0, got {ff_to_g_rev}")
+    if mass_scale <= 0:
+        raise ValueError(f"mass_scale must be > 0, got {mass_scale}")
+    p = feed_factor_parameters(surfaces, material)
+    return config_with_feed_factor(
+        base,
+        p["FF_max"] * ff_to_g_rev,
+        p["FF_min"] * ff_to_g_rev,
+        p["beta"] / mass_scale,
+        **overrides,
+    )
