@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -36,6 +37,19 @@ def snapshot(path: Path, frame: Frame, title: str = "") -> Path:
     return Path(path)
 
 
+def _save_xy(fig: Any, ax: Any, path: Path, xlabel: str, ylabel: str, title: str) -> Path:
+    """Label, grid and legend an x-y plot, write it as PNG and close the figure."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
 def curves(
     path: Path,
     series: list[tuple[np.ndarray, np.ndarray, str]],
@@ -50,15 +64,7 @@ def curves(
         ax.plot(x, y, label=lab)
     if hline is not None:
         ax.axhline(hline[0], color="k", ls="--", lw=1, label=hline[1])
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save_xy(fig, ax, path, xlabel, ylabel, title)
 
 
 def xy_fit(
@@ -75,15 +81,7 @@ def xy_fit(
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     ax.plot(x, y, "o", ms=4, label="DEM")
     ax.plot(xf, yf, "-", label="fit")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save_xy(fig, ax, path, xlabel, ylabel, title)
 
 
 def heap_profiles(path: Path, res: dict, title: str = "") -> Path:
@@ -113,12 +111,6 @@ def heap_profiles(path: Path, res: dict, title: str = "") -> Path:
             ax.annotate(
                 f"{f['angle_deg']:.1f} deg", (xx.mean(), f["slope"] * xx.mean() + b), fontsize=8
             )
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("surface height (mm)")
-    ax.set_title(title or "drawdown heap profiles")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save_xy(
+        fig, ax, path, "x (mm)", "surface height (mm)", title or "drawdown heap profiles"
+    )
