@@ -77,7 +77,7 @@ def _compute(args: argparse.Namespace) -> int:
 
 def _blender(args: argparse.Namespace) -> int:
     from schemas.dem_scene import load_scene
-    from twin_core.mixing.runs import blender_mixing
+    from twin_core.scenes.blender import blender_mixing
 
     cfg = load_scene(args.scene)
     try:
