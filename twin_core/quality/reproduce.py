@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -153,6 +154,16 @@ def lot_table(runs: Iterable[SyntheticRun]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _write_result(
+    out: Path, name: str, runs: pd.DataFrame, summary: pd.DataFrame, fig: Any
+) -> None:
+    """One result of the reproduction: per-run rows ``<name>_runs.csv``, the summary
+    ``<name>.csv`` and its figure ``<name>.png``."""
+    runs.to_csv(out / f"{name}_runs.csv", index=False)
+    summary.to_csv(out / f"{name}.csv", index=False)
+    fig.savefig(out / f"{name}.png", dpi=120)
+
+
 def reproduce_chapter6(
     out_dir: str | Path, seed: int = 0, repeats: int = 3, progress: bool = False
 ) -> dict[str, object]:
@@ -185,17 +196,13 @@ def reproduce_chapter6(
     steps = tqdm(total=5, desc="reproduce", disable=not progress)
 
     long, summ = denoise_table(runs)
-    long.to_csv(out / "table_6_1_runs.csv", index=False)
-    summ.to_csv(out / "table_6_1.csv", index=False)
     y = clean(runs[0])
     shown = {name: apply_method(y, SEED_METHODS[name]) for name in ("SA", "WT", "SV", "FFT")}
-    plots.plot_denoising(runs[0], y, shown, summ).savefig(out / "table_6_1.png", dpi=120)
+    _write_result(out, "table_6_1", long, summ, plots.plot_denoising(runs[0], y, shown, summ))
     steps.update()
 
     l2, s2 = truncation_table(ten)
-    l2.to_csv(out / "table_6_2_runs.csv", index=False)
-    s2.to_csv(out / "table_6_2.csv", index=False)
-    plots.plot_truncation(s2).savefig(out / "table_6_2.png", dpi=120)
+    _write_result(out, "table_6_2", l2, s2, plots.plot_truncation(s2))
     steps.update()
 
     cases = funnel_cases(ten[0])
@@ -209,9 +216,7 @@ def reproduce_chapter6(
     steps.update()
 
     l3, s3 = oos_curve(ten)
-    l3.to_csv(out / "fig_6_17_runs.csv", index=False)
-    s3.to_csv(out / "fig_6_17.csv", index=False)
-    plots.plot_oos_curve(s3).savefig(out / "fig_6_17.png", dpi=120)
+    _write_result(out, "fig_6_17", l3, s3, plots.plot_oos_curve(s3))
     steps.update()
 
     lot_table(runs).to_csv(out / "lots.csv", index=False)
