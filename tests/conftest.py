@@ -1,11 +1,16 @@
 """Shared pytest configuration.
 
+DEM trend tests (marker ``dem_trend``) take their scene seeds from the global test seed
+``TWIN_TEST_SEED`` (integer >= 0, default 0) through the ``dem_seed`` / ``dem_seeds`` fixtures, so
+the same claims can be checked on other samples of the same physics (``make test-seeds``).
+
 Each pytest-xdist worker gets its own numba cache directory: two processes compiling the same
 cached function into one ``__pycache__`` at once can leave a corrupt cache entry on a fresh
 clone. Set before any test module imports numba.
 """
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -26,6 +31,41 @@ import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 
+SEED_ENV = "TWIN_TEST_SEED"
+
+
+def global_test_seed() -> int:
+    """The global test seed: ``$TWIN_TEST_SEED`` as an integer >= 0, 0 when unset."""
+    text = os.environ.get(SEED_ENV, "0").strip() or "0"
+    try:
+        seed = int(text)
+    except ValueError:
+        seed = -1
+    if seed < 0:
+        raise pytest.UsageError(f"{SEED_ENV} must be an integer >= 0, got {text!r}")
+    return seed
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    global_test_seed()  # a bad value stops the run before collection, with one line
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """A test that takes its scene seeds from the global seed carries the ``dem_trend`` marker
+    and vice versa, so ``make test-seeds`` reruns exactly the tests whose samples change."""
+    seeded = {"dem_seed", "dem_seeds"}
+    for item in items:
+        uses_seed = bool(seeded & set(getattr(item, "fixturenames", ())))
+        if uses_seed != (item.get_closest_marker("dem_trend") is not None):
+            raise pytest.UsageError(
+                f"{item.nodeid}: the dem_trend marker and the dem_seed/dem_seeds fixtures go "
+                "together"
+            )
+
+
+def pytest_report_header(config: pytest.Config) -> str:
+    return f"{SEED_ENV}={global_test_seed()} (DEM trend tests' scene seeds)"
+
 
 @pytest.fixture
 def one_numba_thread():
@@ -38,3 +78,21 @@ def one_numba_thread():
     numba.set_num_threads(1)
     yield
     numba.set_num_threads(old)
+
+
+@pytest.fixture(scope="session")
+def dem_seed() -> int:
+    """Scene seed (particle placement) of a DEM trend test that runs one sample: the global test
+    seed itself."""
+    return global_test_seed()
+
+
+@pytest.fixture(scope="session")
+def dem_seeds(dem_seed: int) -> Callable[[int], list[int]]:
+    """Scene seeds of an ``n``-member DEM ensemble: ``n s, ..., n s + n - 1`` for global seed
+    ``s`` (disjoint sets for different global seeds)."""
+
+    def seeds(n: int) -> list[int]:
+        return [dem_seed * n + i for i in range(n)]
+
+    return seeds
