@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test test-seeds lint bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -16,6 +16,15 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 --dist loadfile -q
+
+# the DEM trend tests again on other samples of the same physics (other scene seeds)
+TEST_SEEDS ?= 1
+test-seeds: $(STAMP)
+	@for s in $(TEST_SEEDS); do \
+		echo "== TWIN_TEST_SEED=$$s"; \
+		TWIN_TEST_SEED=$$s OPENBLAS_NUM_THREADS=1 \
+			$(BIN)/python -m pytest -n 2 --dist loadfile -q -m dem_trend || exit 1; \
+	done
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
