@@ -1,8 +1,8 @@
 """DEM scenes of the seed on their small variants (engine runs of a few hundred particles).
 
 Each test names its reference: Beverloo's law, the main effects of the seed's drawdown DOE
-(Table 3.3 / Eqs. 10-13), the feed-factor decay of seed Eq. (2), and the rigid-body kinematics
-of a pitched blade for the blender's axial flow.
+(Table 3.3 / Eqs. 10-13) and the feed-factor decay of seed Eq. (2). The blender section's axial
+flow and mixing are in ``test_mixing_blender.py``.
 """
 
 from __future__ import annotations
@@ -96,38 +96,6 @@ def test_feeder_feed_factor_decays(tmp_path):
     full = ff[w > np.median(w)].mean()
     empty = ff[w <= np.median(w)].mean()
     assert full > empty
-
-
-def test_blender_axial_flow_and_mixing_rate(tmp_path):
-    """Periodic blender section: the net axial flow through the mid plane has the sign of the
-    blades' leading-face normal (pitched-blade kinematics), and mixing (Lacey, 1x8x8 grid, seed
-    4.4.1) proceeds faster at 100 rpm than at 50 rpm; the field file has the compartment
-    contract's keys and a 10x20x20 grid."""
-    from twin_core.scenes import blender
-
-    cfg = load_scene(_cfg("blender_small"))
-    r50 = blender.run(cfg, 50.0, tmp_path / "r50", progress=False)
-    r100 = blender.run(cfg, 100.0, tmp_path / "r100", progress=False)
-    for r in (r50, r100):
-        assert r["blade_push_sign_x"] != 0
-        assert r["net_axial_flow_sign"] == r["blade_push_sign_x"]
-        assert r["transit_count"] > 0
-    assert abs(r100["net_axial_flow_kg_s"]) > abs(r50["net_axial_flow_kg_s"])
-    m50 = np.load(tmp_path / "r50" / "mixing.npz")
-    m100 = np.load(tmp_path / "r100" / "mixing.npz")
-    assert m50["lacey"][0] < 0.3 and m100["lacey"][0] < 0.3  # segregated start
-    t = min(m50["t"][-1], m100["t"][-1])
-    early = t / 2
-    assert np.interp(early, m100["t"], m100["lacey"]) > np.interp(early, m50["t"], m50["lacey"])
-    with np.load(tmp_path / "r100" / "fields.npz") as f:
-        assert f["velocity"].shape == (10, 20, 20, 3)
-        for k in ("solid_fraction", "occupancy"):
-            assert f[k].shape == (10, 20, 20)
-        for k in ("crossings_x", "crossings_y", "crossings_z"):
-            assert f[k].shape == (10, 20, 20, 2)
-        assert list(f["periodic"]) == [True, False, False]
-        assert f["crossings_z"][:, :, -1].sum() == 0
-        assert f["duration_s"] > 0 and f["particle_mass_kg"] > 0
 
 
 def test_blender_resume_continues(tmp_path):
