@@ -1,6 +1,6 @@
 """DEM engine throughput: particle-steps per second on a settled bed and an agitated (drum) bed.
 
-Case (the seed's blender parameters, DEM_NOTES): spheres R = 1 mm, 1500 kg/m3, G = 2e6 Pa,
+Case (the seed's blender parameters, docs/dem_engine.md): spheres R = 1 mm, 1500 kg/m3, G = 2e6 Pa,
 nu = 0.25, mu_s = 0.5, mu_r = 0.01, e = 0.1, dt = 20 % Rayleigh (1.8757e-5 s); box periodic in x,
 80 x 80 mm cross-section; 40 mm long for 6,000 spheres and stretched along x in proportion for
 larger N (50,000 spheres do not fit in 40 x 80 x 80 mm: that is a solid fraction of 0.82).

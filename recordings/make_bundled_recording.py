@@ -3,7 +3,7 @@
 A 30-minute synthetic run of the line, simulated by ``twin_core.plant.simulate_line``:
 API and excipient loss-in-weight feeders at 12 kg/h in total (5 % API), one excipient refill,
 an NIR probe at the blender outlet sampling at 1 Hz with the seed's noise (white, pink,
-proportional to the signal, outliers, baseline offset; SEED_NOTES), and three API tracer pulses
+proportional to the signal, outliers, baseline offset; docs/seed.md), and three API tracer pulses
 (10 / 7.5 / 5 g, the seed's pulse masses) at 300 / 900 / 1500 s.
 
 Channels (line ``line1``)::

@@ -145,7 +145,7 @@ class BlenderModelConfig(StrictModel):
 
 
 class NIRNoise(StrictModel):
-    """NIR noise of the seed (chapter 6.1.3.2, SEED_NOTES): all in % w/w.
+    """NIR noise of the seed (chapter 6.1.3.2, docs/seed.md): all in % w/w.
 
     white_sd: white noise everywhere; pink_sd: 1/f noise (standard deviation over the run);
     proportional_rel: noise standard deviation proportional to the signal (largest near a

@@ -32,8 +32,8 @@ def _mat(e: float = 0.5, mu: float = 0.5, mur: float = 0.0) -> Material:
 
 
 def test_rayleigh_time_step_matches_liggghts_benchmark():
-    """Seed Eq. (9) (corrected form, SEED_NOTES): 20 % of T_R = 1.8757e-5 s, the time step of the
-    LIGGGHTS benchmark (DEM_NOTES)."""
+    """Seed Eq. (9) (corrected form, docs/seed.md): 20 % of T_R = 1.8757e-5 s, the time step of the
+    LIGGGHTS bed benchmark (benchmarks/liggghts/in.bed)."""
     assert 0.2 * rayleigh_time(R, RHO, G_MOD, NU) == pytest.approx(1.8757e-5, rel=1e-4)
     sim = Simulation((0, 0, 0), (0.01, 0.01, 0.01), materials=[_mat()])
     sim.add_particles([[0.005, 0.005, 0.005]], R)
@@ -156,7 +156,7 @@ def test_periodic_box_conserves_particles_and_momentum():
 def test_poured_bed_solid_fraction(dem_seed):
     """A poured bed of frictional monodisperse spheres (the benchmark material: mu_s 0.5, mu_r 0.01,
     e 0.1) settles at a bulk solid fraction between 0.57 and 0.64 (random loose-to-close packing of
-    frictional spheres, Silbert 2010; LIGGGHTS 0.589 on the benchmark case, DEM_NOTES).
+    frictional spheres, Silbert 2010; LIGGGHTS 0.589 on benchmarks/liggghts/in.bed).
 
     Insertion seed from the global test seed. Spread on 12 seeds: solid fraction
     0.6059 +- 0.0048 (min 0.5979, max 0.6146), 7.5 sd from 0.57 and 7.1 sd from 0.64; kinetic

@@ -59,7 +59,7 @@ def test_replay_check_reports_invalid_source_messages(tmp_path):
 
 def test_bundled_recording_content():
     """30 min at 12 kg/h in total, one refill, NIR at 1 Hz with noise, three tracer pulses of the
-    seed's masses (SEED_NOTES: 10 / 7.5 / 6 / 5 g pulses; noise types white, pink,
+    seed's masses (docs/seed.md: 10 / 7.5 / 6 / 5 g pulses; noise types white, pink,
     proportional, outliers), under 2 MB."""
     assert BUNDLED_RECORDING.stat().st_size < 2_000_000
     rec = read_recording(BUNDLED_RECORDING)

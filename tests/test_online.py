@@ -19,7 +19,7 @@ from twin_core.quality.funnel import funnel_gain
 
 
 def ad_open(t: np.ndarray, tau_d: float, tau: float, pe: float) -> np.ndarray:
-    """Axial dispersion E(t) with delay (seed Eq. (7) of 6.2 in the standard form, SEED_NOTES)."""
+    """Axial dispersion E(t) with delay (seed Eq. (7) of 6.2 in the standard form, docs/seed.md)."""
     s = np.asarray(t, float) - tau_d
     out = np.zeros_like(s)
     m = s > 0

@@ -56,7 +56,7 @@ def test_tracer_pulse_is_the_table_6_2_rtd():
     """A small pulse into a tracer-free line comes out as c(t) = 100 M E(t - t_p) / Q with the
     seed Table 6.2 axial-dispersion E (tau_d 11.92 s, tau 16.37 s, Pe 7.67); the recovered mass
     is the injected mass and the mean residence time is tau_d + tau (1 + 2/Pe) = 32.56 s
-    (SEED_NOTES: ~32.5 s)."""
+    (docs/seed.md: ~32.5 s)."""
     m = 1e-4  # kg: small enough that the total flow stays ~ Q
     cfg = ideal_line(
         api_kg_h=0.0, exc_kg_h=12.0, tracers=[TracerPulse(t_s=50.0, mass_kg=m, component="api")]

@@ -11,7 +11,7 @@ kg/s through the + face of each cell, [...,0] in the + direction, [...,1] in the
   e.g. LeVeque, *Finite Volume Methods for Hyperbolic Problems*, 2002, ch. 4).
 * :func:`aggregate_flows`: sum of cell-face flows between distinct compartments.
 * :func:`seed_flows`: chapter 5 Eq. (1), ``F_ij = A_ij (v_i - v_j)`` per direction, kept for
-  comparison; it does not conserve mass (SEED_NOTES).
+  comparison; it does not conserve mass (docs/seed.md).
 * :func:`project_flows`: minimal-norm correction of a flow vector onto exact conservation
   with non-negative flows, solved by a semismooth Newton method on the dual of the QP
   ``min 1/2 sum w (f - f0)^2  s.t.  C f = b, f >= 0`` (KKT: ``f = max(0, f0 + W^-1 C^T l)``;

@@ -13,7 +13,7 @@ References
 - Antypov & Elliott (2011), EPL 94, 50004: for Hertz contacts with this damping the restitution
   coefficient is velocity independent but differs from ``e``; the exact mapping is obtained here
   by integrating the dimensionless contact ODE (see :func:`damping_coefficient`).
-- Rayleigh time step, seed Eq. (9) (corrected, SEED_NOTES):
+- Rayleigh time step, seed Eq. (9) (corrected, docs/seed.md):
   ``T_R = pi R sqrt(rho/G) / (0.1631 nu + 0.8766)``.
 """
 

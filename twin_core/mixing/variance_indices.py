@@ -37,7 +37,7 @@ def lacey(a: np.ndarray, n: np.ndarray) -> float:
     particles per sample). 0 segregated, 1 random.
 
     Reference: Lacey, J. Appl. Chem. 4 (1954) 257. The seed's Eq. (1) swaps the numerator
-    and its Eq. (3) divides by the number of cells; SEED_NOTES gives the form used here.
+    and its Eq. (3) divides by the number of cells; docs/seed.md gives the form used here.
     """
     a, n, p = _fractions(a, n)
     x = a / n
@@ -127,7 +127,7 @@ def mixing_entropy(counts: np.ndarray) -> float:
     ``e(k) = -sum_i x_i(k) ln x_i(k)``, ``ME = sum_k n(k) e(k) / (N_total e_mix)`` with
     ``e_mix = -sum_i p_i ln p_i`` of the overall composition.
     Reference: Lai & Fan, Powder Technol. 12 (1975) 195 (entropy of mixing). The seed's
-    Eq. (13) drops the minus sign (SEED_NOTES); its Eq. (14) normalises by N cells.
+    Eq. (13) drops the minus sign (docs/seed.md); its Eq. (14) normalises by N cells.
     """
     c = np.asarray(counts, float)
     if c.ndim != 2 or c.shape[1] < 2:
@@ -149,7 +149,7 @@ def mixing_entropy(counts: np.ndarray) -> float:
 def degree_of_mixedness(a: np.ndarray, n: np.ndarray) -> float:
     """DM = 1 - sqrt( (sum (x_i - x_c)^2 / N) / (x_c (1 - x_c)) ).
 
-    Seed Eq. (16) with the square restored (SEED_NOTES); x_c the overall fraction.
+    Seed Eq. (16) with the square restored (docs/seed.md); x_c the overall fraction.
     Reference: Rhodes et al., Powder Technol. 115 (2001) (degree of mixedness of
     fluidised beds), following Danckwerts' intensity. 0 segregated, 1 - 1/sqrt(n) random.
     """

@@ -8,7 +8,7 @@ with white ~ N(0, white_sd^2) i.i.d., pink a 1/f process of standard deviation `
 A&A 300:707), and outliers: with probability ``outlier_prob`` per sample a
 Laplace-distributed spike of scale ``outlier_sd / sqrt(2)`` (standard deviation outlier_sd).
 The seed reports baseline statistics beyond t = 120 s of mean -0.03 to -0.074 and standard
-deviation 0.125 to 0.132 % w/w (SEED_NOTES); the defaults of ``NIRNoise`` give -0.05 / 0.122.
+deviation 0.125 to 0.132 % w/w (docs/seed.md); the defaults of ``NIRNoise`` give -0.05 / 0.122.
 """
 
 from __future__ import annotations
