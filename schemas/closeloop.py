@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
-from schemas.base import Finite, Ident, Message, NonNegative, StrictModel
+from schemas.base import Finite, Ident, Message, NonNegative, StrictModel, Text
 
 __all__ = [
     "CandidateScore",
@@ -25,6 +25,7 @@ __all__ = [
     "Errors",
     "ModelFinding",
     "ParamEstimate",
+    "StructureEntry",
     "Windows",
     "WindowError",
 ]
@@ -111,6 +112,39 @@ class CandidateScore(StrictModel):
     dm_p_value: Finite | None = None
     claimable: bool
     converged: bool
+
+
+class StructureEntry(StrictModel):
+    """Structure beyond the candidate library (``twin_core.closeloop.structure``): a parameter
+    that changes with the operating point or with time, periodic content in the residual, or
+    a corrected blender response. Empirical: a description usable for prediction, found with
+    evidence against the declared coloured noise on held-out data, not a named mechanism."""
+
+    kind: Literal["parameter_dependence", "periodic", "kernel_correction"]
+    summary: Text = Field(description="one line for a process engineer")
+    evidence: dict[str, Finite] = Field(
+        default_factory=dict,
+        description="statistics and p-values: the training-window search, the held-out "
+        "likelihood-ratio z and p, the held-out relative MSE improvement, ...",
+    )
+    estimates: dict[str, tuple[Finite, Finite, Finite]] = Field(
+        default_factory=dict, description="name -> (value, ci95_low, ci95_high)"
+    )
+    empirical: bool = True
+    alternatives: list[str] = Field(
+        default_factory=list,
+        description="descriptions the data cannot tell apart from this one",
+    )
+
+    @model_validator(mode="after")
+    def _interval_order(self) -> StructureEntry:
+        for name, (v, lo, hi) in self.estimates.items():
+            if not lo <= v <= hi:
+                raise ValueError(
+                    f"estimates.{name} must satisfy ci95_low <= value <= ci95_high, got "
+                    f"({v}, {lo}, {hi})"
+                )
+        return self
 
 
 class CloseLoopReport(StrictModel):
