@@ -23,10 +23,11 @@ sigma_loc^2 = sum_k |Y_k - mu U_k|^2 / (K - 1):
 var(f) = 12 sigma_loc^2 fs^2 / ((2 pi)^2 A^2 N (N^2 - 1)) (Rife & Boorstyn 1974).
 
 Coherent input: the magnitude-squared coherence (Welch, Hann, non-overlapping segments of
-about 4 periods) of the residual with every feeder flow and screw speed at f; without
-coherence an estimate C over L segments exceeds c with probability (1 - c)^(L - 1) (Carter
-1987, Proc. IEEE 75:236), its p-value. And the match of f with the screw rotation of a feeder (h x rpm / 60, h = 1..3,
-folded into the Nyquist band) within the frequency uncertainty: a pulsation locked to a screw.
+4 periods, at least 32 samples, at least 4 segments) of the residual with every feeder flow and
+screw speed at f; without coherence an estimate C over L segments exceeds c with probability
+(1 - c)^(L - 1) (Carter 1987, Proc. IEEE 75:236), its p-value. And the match of f with the
+screw rotation of a feeder (h x rpm / 60, h = 1..3, folded into the Nyquist band) within the
+frequency uncertainty: a pulsation locked to a screw (or an alias of one).
 
 The correction for prediction is the fitted sinusoid A cos(2 pi f t + phi) in plant time.
 """
@@ -113,7 +114,7 @@ def coherent_inputs(
     speed at ``f_hz`` over ``span``: [(input, MSC, p)], most coherent first (see module)."""
     dt = ctx.dt
     n = span.stop - span.start
-    nper = int(min(n // 4, 2 ** math.ceil(math.log2(max(4.0 / (f_hz * dt), 32.0)))))
+    nper = int(min(n // 4, max(math.ceil(4.0 / (f_hz * dt)), 32)))
     if nper < 16:
         return []
     n_seg = n // nper
