@@ -54,7 +54,8 @@ class StructureOptions:
     search tries); ``min_improvement``: held-out weighted MSE drop a finding needs.
     Parameter dependence: ``groups`` windows per covariate, ``min_rel_spread`` the relative
     spread (5-95 %) a flow or screw speed needs on the training window to be a covariate,
-    ``min_time_span_s`` the training span for a time dependence. Periodic: multitaper
+    ``min_time_span_s`` the training span for a time dependence, ``max_laws`` the strongest
+    parameter x covariate pairs (search-significant) tried on the held-out window. Periodic: multitaper
     time-bandwidth ``nw`` (2 nw - 1 tapers), ``max_sinusoids``, ``min_cycles`` in the training
     window. Kernel: length ``kernel_s`` (None: 6 mean residence times of the model's E(t),
     120-600 s), knot spacing ``knot_s``, smoothing weights ``n_lambda``, ``cv_folds`` of
@@ -69,6 +70,7 @@ class StructureOptions:
     groups: int = 4
     min_rel_spread: float = 0.05
     min_time_span_s: float = 1800.0
+    max_laws: int = 3
     nw: float = 4.0
     max_sinusoids: int = 2
     min_cycles: float = 12.0
@@ -91,6 +93,8 @@ class StructureOptions:
                 raise ValueError(f"{name} must be in (0, 1), got {v!r}")
         if not 0 <= self.min_improvement < 1:
             raise ValueError(f"min_improvement must be in [0, 1), got {self.min_improvement!r}")
+        if self.max_laws < 1:
+            raise ValueError(f"max_laws must be >= 1, got {self.max_laws!r}")
         if self.groups < 3:
             raise ValueError(f"groups must be >= 3, got {self.groups!r}")
         if self.nw < 1.5:
@@ -99,9 +103,11 @@ class StructureOptions:
             raise ValueError(f"bootstrap must be >= 0, got {self.bootstrap!r}")
 
     def heldout_level(self, kind: str) -> float:
-        """Level of one held-out test of a search of ``kind`` (Bonferroni, see class)."""
+        """Level of one held-out test of a search of ``kind`` (Bonferroni, see class: over
+        the searches, and over the sinusoids or parameter laws a search may try)."""
         level = self.alpha / max(len(self.kinds), 1)
-        return level / self.max_sinusoids if kind == "periodic" else level
+        tries = {"periodic": self.max_sinusoids, "parameter_dependence": self.max_laws}
+        return level / tries.get(kind, 1)
 
 
 @dataclass

@@ -20,7 +20,8 @@ covariates) and, as evidence, by the Wald statistic of equal levels
 (D delta)'(D V D')^-1 (D delta) ~ chi^2(G - 1), D the successive differences (the F-test of
 window estimates with their standard errors, with the covariance of the windows).
 
-For the strongest pair one secant step refines the window estimates (Jacobian from the model
+For the search-significant pairs, strongest first (at most ``max_laws``, the held-out level
+split among them), one secant step refines the window estimates (Jacobian from the model
 evaluated at each window's estimate); the law theta(x) = theta_ref + b (x - x_ref) (clipped to
 the parameter's bounds) predicts the outlet at the operating point of every sample (model
 evaluated at a few levels of theta, interpolated per sample). Held-out evidence compares it with
@@ -36,6 +37,7 @@ from scipy import stats
 
 from twin_core.closeloop.data import RunData
 from twin_core.closeloop.structure_base import (
+    HeldoutEvidence,
     ResidualContext,
     StructureFinding,
     StructureOptions,
@@ -367,19 +369,40 @@ def find_parameter_dependence(
         return []
     n_tests = len(fits)
     fits.sort(key=lambda f: f[0].p_value)
-    best, g, jac = fits[0]
-    p_search = min(1.0, best.p_value * n_tests)
-    if p_search >= opt.search_alpha:
-        return []
-    x = cov_x[best.covariate][0]
-    wf = _refine(ctx, best, g, x, jac, r)
+    significant = [f for f in fits if f[0].p_value * n_tests < opt.search_alpha]
+    for best, g, jac in significant[: opt.max_laws]:
+        law = _heldout_law(ctx, opt, best, g, jac, cov_x[best.covariate][0], r)
+        if law is not None:
+            return [_law_finding(law, best, fits, n_tests, opt)]
+    return []
+
+
+@dataclass
+class _Law:
+    wf: WindowFit
+    predictor: LawPredictor
+    ev: HeldoutEvidence
+
+
+def _heldout_law(
+    ctx: ResidualContext,
+    opt: StructureOptions,
+    wf0: WindowFit,
+    g: np.ndarray,
+    jac: np.ndarray,
+    x: np.ndarray,
+    r: np.ndarray,
+) -> _Law | None:
+    """The refined law of one parameter x covariate pair if it beats a constant refit of the
+    parameter on the held-out window (see module), else None."""
+    model, data = ctx.model, ctx.data
+    wf = _refine(ctx, wf0, g, x, jac, r)
     p = wf.param
     tr = ctx.train
     const = float(np.sum((ctx.weight * jac * r)[tr]) / np.sum((ctx.weight * jac**2)[tr]))
     p_const = p.model_with(model, p.value + const).predict(data.inputs)
     predictor = LawPredictor(p.key, wf.covariate, p.value + wf.a, wf.b, wf.x_ref)
-    theta = predictor.theta_of(data, model, p)
-    p_law = law_prediction(model, data, p, theta)
+    p_law = law_prediction(model, data, p, predictor.theta_of(data, model, p))
     ev = heldout_evidence(
         ctx,
         p_law - p_const,
@@ -387,8 +410,19 @@ def find_parameter_dependence(
         opt.min_improvement,
         e0=np.where(ctx.finite, r - (p_const - ctx.pred), 0.0),
     )
-    if not ev.passed:
-        return []
+    return _Law(wf, predictor, ev) if ev.passed else None
+
+
+def _law_finding(
+    law: _Law,
+    best: WindowFit,
+    fits: list[tuple[WindowFit, np.ndarray, np.ndarray]],
+    n_tests: int,
+    opt: StructureOptions,
+) -> StructureFinding:
+    """The finding of an accepted law (``fits``: all pairs tried, strongest first)."""
+    wf, ev, p = law.wf, law.ev, law.wf.param
+    p_search = min(1.0, best.p_value * n_tests)
     se_levels = np.sqrt(np.clip(np.diag(wf.cov), 0.0, None))
     estimates = {
         f"{p.key}:slope_per_{wf.unit}": interval(wf.b, wf.se_b),
@@ -400,8 +434,8 @@ def find_parameter_dependence(
         estimates[f"{p.key}@{wf.covariate}={xm:.4g}"] = interval(p.value + lv, se, p.lower, p.upper)
     alternatives = [
         f"{f.param.key} vs {f.covariate} (z {f.z:+.1f})"
-        for f, _, _ in fits[1:]
-        if f.p_value * n_tests < opt.search_alpha
+        for f, _, _ in fits
+        if f is not best and f.p_value * n_tests < opt.search_alpha
     ][:4]
     evidence = {
         "slope_z": wf.z,
@@ -418,29 +452,27 @@ def find_parameter_dependence(
         f"{_describe(wf)}; constant rejected (p {max(wf.wald_p, 1e-300):.2g}); held-out error "
         f"{-100 * ev.rel_improvement:+.1f} % against a constant refit (empirical)"
     )
-    return [
-        StructureFinding(
-            kind="parameter_dependence",
-            summary=summary,
-            evidence=evidence,
-            estimates=estimates,
-            alternatives=alternatives,
-            curves={
-                "param": p.key,
-                "unit": p.unit,
-                "covariate": wf.covariate,
-                "covariate_unit": wf.unit,
-                "x": wf.x_mean,
-                "levels": p.value + wf.levels,
-                "se": se_levels,
-                "theta_ref": p.value + wf.a,
-                "slope": wf.b,
-                "x_ref": wf.x_ref,
-                "declared": p.value,
-            },
-            predictor=predictor,
-        )
-    ]
+    return StructureFinding(
+        kind="parameter_dependence",
+        summary=summary,
+        evidence=evidence,
+        estimates=estimates,
+        alternatives=alternatives,
+        curves={
+            "param": p.key,
+            "unit": p.unit,
+            "covariate": wf.covariate,
+            "covariate_unit": wf.unit,
+            "x": wf.x_mean,
+            "levels": p.value + wf.levels,
+            "se": se_levels,
+            "theta_ref": p.value + wf.a,
+            "slope": wf.b,
+            "x_ref": wf.x_ref,
+            "declared": p.value,
+        },
+        predictor=law.predictor,
+    )
 
 
 __all__ = [
