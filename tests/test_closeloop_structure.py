@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy import stats
+from scipy import signal, stats
 from scipy.integrate import solve_ivp
 
 from schemas.closeloop import StructureEntry
@@ -31,7 +31,7 @@ from twin_core.closeloop.structure_kernel import (
     kernel_design,
     kernel_length_s,
 )
-from twin_core.closeloop.structure_periodic import multitaper_ftest
+from twin_core.closeloop.structure_periodic import coherence_at, multitaper_ftest
 from twin_core.plant.nir import add_nir_noise
 from twin_core.rtd.profiles import moments
 
@@ -124,6 +124,21 @@ def test_multitaper_recovers_a_sinusoid_in_coloured_noise():
     assert abs(lines.freqs_hz[j] - f0) < 4.0 / n
     assert 2 * abs(lines.mu[j]) == pytest.approx(amp, rel=0.3)
     assert stats.f.sf(lines.f_stat[j], 2, lines.dof) * n / 2 < 1e-3
+
+
+def test_coherence_at_one_bin_equals_scipy_welch_coherence():
+    """Against ``scipy.signal.coherence`` (Hann, non-overlapping, linear detrend) at every
+    bin, on a pair sharing a sinusoid and a trend."""
+    rng = np.random.default_rng(5)
+    n, nper = 2000, 128
+    t = np.arange(n, dtype=float)
+    common = np.sin(2 * np.pi * t / 40.0)
+    x = common + 0.01 * t + rng.standard_normal(n)
+    u = 0.5 * common - 0.02 * t + rng.standard_normal(n)
+    f, c = signal.coherence(x, u, fs=1.0, window="hann", nperseg=nper, noverlap=0, detrend="linear")
+    ours = np.array([coherence_at(x, u, nper, k) for k in range(f.size)])
+    np.testing.assert_allclose(ours, c, atol=1e-10)
+    assert ours[int(round(nper / 40.0))] > 0.5  # the shared line
 
 
 def test_hat_convolutions_equal_direct_convolution_with_the_basis():

@@ -107,6 +107,27 @@ def refine_frequency(lines: MultitaperLines, x: np.ndarray, j: int, dt: float) -
     return float(res.x) if -res.fun >= abs(lines.mu[j]) else f0
 
 
+def coherence_at(x: np.ndarray, u: np.ndarray, nper: int, k: int) -> float:
+    """Magnitude-squared coherence |S_xu|^2 / (S_xx S_uu) of ``x`` and ``u`` at the Fourier
+    bin ``k`` of non-overlapping segments of ``nper`` samples, each linearly detrended and
+    Hann-windowed (Welch's estimate at one frequency; ``scipy.signal.coherence`` with
+    ``noverlap=0, detrend="linear"``, without its full spectrum)."""
+    n_seg = x.size // nper
+    j = np.arange(nper, dtype=float)
+    q, _ = np.linalg.qr(np.column_stack([np.ones(nper), j]))
+    win = signal.windows.hann(nper, sym=False)
+    wave = win * np.exp(-2j * np.pi * k * j / nper)
+
+    def coefs(v: np.ndarray) -> np.ndarray:
+        seg = v[: n_seg * nper].reshape(n_seg, nper)
+        return (seg - (seg @ q) @ q.T) @ wave
+
+    cx, cu = coefs(np.asarray(x, float)), coefs(np.asarray(u, float))
+    sxu = np.mean(cx * cu.conj())
+    sxx, suu = np.mean(np.abs(cx) ** 2), np.mean(np.abs(cu) ** 2)
+    return float(abs(sxu) ** 2 / (sxx * suu)) if sxx > 0 and suu > 0 else 0.0
+
+
 def coherent_inputs(
     ctx: ResidualContext, r: np.ndarray, span: slice, f_hz: float
 ) -> list[tuple[str, float, float]]:
@@ -118,18 +139,16 @@ def coherent_inputs(
     if nper < 16:
         return []
     n_seg = n // nper
+    kbin = int(round(f_hz * dt * nper))
     inp = ctx.data.inputs
-    series = {k: v for k, v in inp.flows_kg_h.items()}
-    series.update({f"{k}:screw_speed": v for k, v in inp.screw_speed_rpm.items()})
+    series = dict(inp.flows_kg_h)
+    series.update({f"{name}:screw_speed": v for name, v in inp.screw_speed_rpm.items()})
     out = []
     for name, u in series.items():
         u = np.asarray(u, dtype=float)[span]
         if not np.all(np.isfinite(u)) or np.std(u) == 0:
             continue
-        f, c = signal.coherence(
-            r[span], u, fs=1.0 / dt, window="hann", nperseg=nper, noverlap=0, detrend="linear"
-        )
-        msc = float(c[int(np.argmin(np.abs(f - f_hz)))])
+        msc = coherence_at(r[span], u, nper, kbin)
         out.append((name, msc, float((1.0 - msc) ** (n_seg - 1))))
     return sorted(out, key=lambda x: x[2])
 
