@@ -23,6 +23,8 @@ of the kernel on its window). One CSV row per record (appended, so a run resumes
 summary is printed and written next to the CSV.
 
     python benchmarks/closeloop_structure.py --seeds 50 --workers 2
+    python benchmarks/closeloop_structure.py --seeds 60 --first-seed 50 --only none \\
+        --out benchmarks/out/closeloop_structure_null.csv
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import csv
 import math
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -126,29 +129,35 @@ def verdict(case: sc.StructureCase, found: list[StructureFinding]) -> tuple[str,
     return "wrong", detail, []
 
 
-def _cases(run_v, run_c, seed: int) -> list[tuple[str, int, sc.StructureCase]]:
+def _cases(run_v, run_c, seed: int) -> list[tuple[str, int, Callable[[], sc.StructureCase]]]:
     return [
-        ("none_vary", 0, sc.none_case(run_v, seed)),
-        ("none_const", 0, sc.none_case(run_c, seed + 1)),
-        ("throughput_tau", 1, sc.throughput_tau_case(run_v, seed + 2, exponent=1.0)),
-        ("throughput_tau", 0, sc.throughput_tau_case(run_v, seed + 3, exponent=0.5)),
-        ("pulsation_screw", 1, sc.pulsation_case(run_c, seed + 4, 0.2)),
-        ("pulsation_screw", 0, sc.pulsation_case(run_c, seed + 5, 0.1)),
-        ("pulsation_cycle", 1, sc.pulsation_case(run_c, seed + 6, 0.02, 75.0, True)),
-        ("pulsation_cycle", 0, sc.pulsation_case(run_c, seed + 7, 0.01, 75.0, True)),
-        ("two_zone", 1, sc.two_zone_case(run_c, seed + 8, stagnant_kg=0.04)),
-        ("two_zone", 0, sc.two_zone_case(run_c, seed + 9, stagnant_kg=0.02)),
+        ("none_vary", 0, lambda: sc.none_case(run_v, seed)),
+        ("none_const", 0, lambda: sc.none_case(run_c, seed + 1)),
+        ("throughput_tau", 1, lambda: sc.throughput_tau_case(run_v, seed + 2, exponent=1.0)),
+        ("throughput_tau", 0, lambda: sc.throughput_tau_case(run_v, seed + 3, exponent=0.5)),
+        ("pulsation_screw", 1, lambda: sc.pulsation_case(run_c, seed + 4, 0.2)),
+        ("pulsation_screw", 0, lambda: sc.pulsation_case(run_c, seed + 5, 0.1)),
+        ("pulsation_cycle", 1, lambda: sc.pulsation_case(run_c, seed + 6, 0.02, 75.0, True)),
+        ("pulsation_cycle", 0, lambda: sc.pulsation_case(run_c, seed + 7, 0.01, 75.0, True)),
+        ("two_zone", 1, lambda: sc.two_zone_case(run_c, seed + 8, stagnant_kg=0.04)),
+        ("two_zone", 0, lambda: sc.two_zone_case(run_c, seed + 9, stagnant_kg=0.02)),
     ]
 
 
-def seed_rows(seed: int, duration: float, noises: list[float], tracer: bool) -> list[dict]:
-    """All records of one seed (see module)."""
+def seed_rows(
+    seed: int, duration: float, noises: list[float], tracer: bool, only: tuple[str, ...] = ()
+) -> list[dict]:
+    """All records of one seed (see module); ``only``: case-name prefixes to run (all if
+    empty)."""
     base_v = sc.base_run(duration, 1000 + seed, vary_throughput=True, tracer_pulses=tracer)
     base_c = sc.base_run(duration, 2000 + seed, vary_throughput=False, tracer_pulses=tracer)
     rows = []
     for nz in noises:
         run_v, run_c = sc.with_noise_scale(base_v, nz), sc.with_noise_scale(base_c, nz)
-        for name, level, case in _cases(run_v, run_c, 100 * seed + int(10 * nz)):
+        for name, level, make in _cases(run_v, run_c, 100 * seed + int(10 * nz)):
+            if only and not name.startswith(only):
+                continue
+            case = make()
             sp = make_split(case.data.t_s)
             t0, c0 = time.perf_counter(), time.process_time()
             found = find_structure(case.data, case.model, train=sp.train, heldout=sp.heldout)
@@ -230,6 +239,7 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=7200.0)
     ap.add_argument("--tracer", action="store_true", help="API tracer pulses every 15 min")
     ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--only", default="", help="comma-separated case-name prefixes (e.g. none)")
     ap.add_argument("--summary-only", action="store_true", help="re-print the table of --out")
     args = ap.parse_args()
     out = Path(args.out)
@@ -240,6 +250,7 @@ def main() -> int:
             done = list(csv.DictReader(f))
     seen = {int(r["seed"]) for r in done}
     noises = [float(x) for x in args.noise.split(",")]
+    only = tuple(x for x in args.only.split(",") if x)
     todo = [s for s in range(args.first_seed, args.first_seed + args.seeds) if s not in seen]
     if args.summary_only:
         todo = []
@@ -248,7 +259,9 @@ def main() -> int:
         wr = csv.DictWriter(f, fieldnames=FIELDS)
         if new_file:
             wr.writeheader()
-        futures = [pool.submit(seed_rows, s, args.duration, noises, args.tracer) for s in todo]
+        futures = [
+            pool.submit(seed_rows, s, args.duration, noises, args.tracer, only) for s in todo
+        ]
         for i, fut in enumerate(futures):
             for row in fut.result():
                 wr.writerow(row)
