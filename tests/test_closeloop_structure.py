@@ -56,6 +56,15 @@ def _search(case, **opt):
     return found, sp
 
 
+def _first_of_kind(case, kind):
+    """The first finding of ``kind`` in the search of ``case`` (asserted to exist), all
+    findings and the split."""
+    found, sp = _search(case)
+    of_kind = [f for f in found if f.kind == kind]
+    assert of_kind, [f.summary for f in found]
+    return of_kind[0], found, sp
+
+
 def test_noise_gram_is_the_bilinear_form_of_the_declared_covariance():
     rng = np.random.default_rng(0)
     pred = 10 + rng.standard_normal(500)
@@ -231,10 +240,7 @@ def test_no_structure_in_effect_free_records(const_run, vary_run):
 
 def test_pulsation_carried_by_the_screw_speed_is_found_and_attributed(const_run):
     case = sc.pulsation_case(const_run, 5, 0.02, period_s=75.0, screw_shows_it=True)
-    found, sp = _search(case)
-    periodic = [f for f in found if f.kind == "periodic"]
-    assert periodic, [f.summary for f in found]
-    f = periodic[0]
+    f, _, sp = _first_of_kind(case, "periodic")
     v, lo, hi = f.estimates["frequency_hz"]
     assert abs(v - 1 / 75.0) <= f.evidence["bandwidth_hz"]
     assert f.estimates["amplitude_pct_w_w"][0] == pytest.approx(
@@ -254,10 +260,7 @@ def test_pulsation_carried_by_the_screw_speed_is_found_and_attributed(const_run)
 
 def test_screw_locked_pulsation_is_matched_to_the_screw_rotation(const_run):
     case = sc.pulsation_case(const_run, 6, 0.2)
-    found, _ = _search(case)
-    periodic = [f for f in found if f.kind == "periodic"]
-    assert periodic, [f.summary for f in found]
-    f = periodic[0]
+    f, _, _ = _first_of_kind(case, "periodic")
     assert (
         abs(f.estimates["frequency_hz"][0] - case.truth["frequency_hz"])
         <= f.evidence["bandwidth_hz"]
@@ -267,10 +270,7 @@ def test_screw_locked_pulsation_is_matched_to_the_screw_rotation(const_run):
 
 def test_throughput_dependent_tau_is_found_with_its_sign(vary_run):
     case = sc.throughput_tau_case(vary_run, 7, exponent=1.0)
-    found, sp = _search(case)
-    dep = [f for f in found if f.kind == "parameter_dependence"]
-    assert dep, [f.summary for f in found]
-    f = dep[0]
+    f, _, sp = _first_of_kind(case, "parameter_dependence")
     named = [f"{f.curves['param']} vs {f.curves['covariate']}", *f.alternatives]
     assert any(
         n.startswith(("blender.tau vs throughput", "blender.tau vs excipient")) for n in named
@@ -288,10 +288,7 @@ def test_throughput_dependent_tau_is_found_with_its_sign(vary_run):
 
 def test_two_zone_blender_gives_a_kernel_correction_usable_on_another_record(const_run):
     case = sc.two_zone_case(const_run, 8, stagnant_kg=0.04)
-    found, sp = _search(case)
-    kern = [f for f in found if f.kind == "kernel_correction"]
-    assert kern, [f.summary for f in found]
-    f = kern[0]
+    f, found, sp = _first_of_kind(case, "kernel_correction")
     mean, lo, hi = f.estimates["mean_residence_time_s"]
     declared = f.evidence["declared_mean_residence_time_s"]
     assert lo > declared  # the stagnant zone lengthens the residence time
