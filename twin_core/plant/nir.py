@@ -43,3 +43,17 @@ def noise_sd(signal: np.ndarray, noise: NIRNoise) -> np.ndarray:
     """Standard deviation of the non-outlier noise at each sample (for weighting), % w/w."""
     s = np.abs(np.nan_to_num(np.asarray(signal, dtype=float)))
     return np.sqrt(noise.white_sd**2 + noise.pink_sd**2 + (noise.proportional_rel * s) ** 2)
+
+
+def scaled_noise(noise: NIRNoise, scale: float) -> NIRNoise:
+    """The noise with its white, pink and proportional parts times ``scale`` (outliers and the
+    baseline offset kept): "k x the seed's noise"."""
+    if not (np.isfinite(scale) and scale >= 0):
+        raise ValueError(f"scale must be >= 0, got {scale!r}")
+    return noise.model_copy(
+        update={
+            "white_sd": noise.white_sd * scale,
+            "pink_sd": noise.pink_sd * scale,
+            "proportional_rel": noise.proportional_rel * scale,
+        }
+    )

@@ -9,10 +9,17 @@
    feeders *report* (the twin's inputs);
 3. hidden ``effects`` (``twin_core.plant.effects``) act on the truth only: feeder effects change
    delivered vs reported flows, rtd effects change the blender's E(t), sensor effects the probe;
+   hidden ``open_world`` effects (``twin_core.plant.openworld``, not close-loop candidates) act
+   at their feeder, blender or sensor stage;
 4. the outlet composition is the mass-flow-weighted convolution of the declared model
-   (``twin_core.plant.model``), tracer pulses included;
+   (``twin_core.plant.model``), tracer pulses included; or, with ``blender="fv"``, the blender
+   integrated as a finite-volume ODE (``twin_core.plant.blender_fv``: the code path independent
+   of the twin's E(t), needed by the open-world blender effects);
 5. the NIR probe samples every ``sensor.sample_period_s`` and adds the seed's noise
    (``twin_core.plant.nir``).
+
+Data faults of the records (stuck readings, gaps, clipping, spike bursts, time jumps,
+duplicate stamps) are injected into the run's messages: ``twin_core.plant.faults``.
 
 Everything random derives from ``seed`` (numpy SeedSequence: one child per feeder, one for the
 NIR noise), so a run is reproducible.
@@ -39,6 +46,7 @@ from twin_core.plant.model import (
     sensor_signal,
 )
 from twin_core.plant.nir import add_nir_noise
+from twin_core.plant.openworld import OpenWorldEffect, make_open_world, open_world_line
 
 
 @dataclass
@@ -102,6 +110,11 @@ class LineRun:
     disturbances: list[FlowDisturbance]
     config: LineConfig
     seed: int | None = None
+    #: ground truth of the hidden open-world effects (dict form) and of the data faults
+    open_world: list[dict[str, Any]] = field(default_factory=list)
+    faults: list[dict[str, Any]] = field(default_factory=list)
+    #: the blender code path of the truth: "convolution" (declared model's) or "fv"
+    blender: str = "convolution"
 
     def inputs(self) -> LineInputs:
         """The twin's view of the inputs: reported flows, refill flags, tracer pulses."""
@@ -125,6 +138,9 @@ class LineRun:
             "n": int(self.t_s.size),
             "config": self.config.line_dict(),
             "effects": self.effects,
+            "open_world": self.open_world,
+            "faults": self.faults,
+            "blender": self.blender,
             "events": [e.model_dump(mode="json") for e in self.events],
             "seed": self.seed,
         }
@@ -188,13 +204,19 @@ def simulate_line(
     seed: int | None = None,
     effects: Sequence[Effect | Mapping[str, Any]] = (),
     disturbances: Sequence[FlowDisturbance | Mapping[str, Any]] = (),
+    open_world: Sequence[OpenWorldEffect | Mapping[str, Any]] = (),
+    blender: str = "convolution",
+    feeder_records: Mapping[str, FeederRecord] | None = None,
 ) -> LineRun:
     """Simulate the line for ``duration_s`` on a uniform grid of step ``dt_s``.
 
     ``effects`` are hidden from the declared model (ground truth in ``LineRun.effects``);
-    ``disturbances`` are known flow changes (reported by the feeders, listed as events).
-    See the module docstring for the chain; the outlet is seed 6.2 Eq. (6) convolution applied
-    per component mass flow.
+    ``disturbances`` are known flow changes (reported by the feeders, listed as events);
+    ``open_world`` effects are hidden too (``LineRun.open_world``). See the module docstring
+    for the chain; the outlet is seed 6.2 Eq. (6) convolution applied per component mass flow
+    (``blender="convolution"``) or the finite-volume vessel (``"fv"``). ``feeder_records``:
+    the feeders of an earlier run of the same configuration, grid and seed (the LIW simulation
+    is the slow part of a run), used as copies instead of simulating them again.
     """
     if not isinstance(config, LineConfig):
         raise ValueError(f"config must be a LineConfig, got {type(config).__name__}")
@@ -204,9 +226,12 @@ def simulate_line(
     if not (math.isfinite(dt_s) and 0 < dt_s <= duration_s):
         raise ValueError(f"dt_s must be in (0, duration_s], got {dt_s!r}")
     effs = [make_effect(e) for e in effects]
+    ows = [make_open_world(e) for e in open_world]
+    if blender not in ("convolution", "fv"):
+        raise ValueError(f"blender must be 'convolution' or 'fv', got {blender!r}")
     dists = [d if isinstance(d, FlowDisturbance) else FlowDisturbance(**d) for d in disturbances]
     names = [f.id for f in config.feeders]
-    for e in effs:
+    for e in [*effs, *ows]:
         if e.stage == "feeder" and e.target is not None and e.target not in names:
             raise ValueError(f"effect {e.name}.target must be one of {names}, got {e.target!r}")
     for d in dists:
@@ -220,7 +245,11 @@ def simulate_line(
 
     feeders: dict[str, FeederRecord] = {}
     for spec, child in zip(config.feeders, children[:-1]):
-        feeders[spec.id] = simulate_feeder(spec, duration_s, dt_s, n, np.random.default_rng(child))
+        if feeder_records is not None:
+            feeders[spec.id] = _copied(feeder_records, spec.id, n)
+        else:
+            rng = np.random.default_rng(child)
+            feeders[spec.id] = simulate_feeder(spec, duration_s, dt_s, n, rng)
     for d in dists:
         rec = feeders[d.feeder]
         on = (t >= d.t_s) & (t < d.t_s + d.duration_s)
@@ -234,20 +263,25 @@ def simulate_line(
         refilling={k: f.refilling for k, f in feeders.items()},
         tracers=list(config.tracers),
     )
-    # delivered flows under the hidden feeder effects (per feeder, for the record)
-    for name, rec in feeders.items():
-        single = LineInputs(
-            t_s=t,
-            flows_kg_h={name: rec.flow_kg_h},
-            components={name: rec.component},
-            refilling={name: rec.refilling},
-        )
-        rec.delivered_kg_h = inlet_component_flows(single, effs)[rec.component] * 3600.0
-
-    outlet = outlet_concentration(run_inputs, config.blender, effs)
     sensor = config.sensor
-    c = outlet.get(sensor.component, np.zeros(n))
-    sig = sensor_signal(t, c, effs, sensor.noise.baseline_offset)
+    if ows or blender == "fv":
+        line = open_world_line(config, t, feeders, effs, ows, blender)
+        for name, rec in feeders.items():
+            rec.delivered_kg_h = line.delivered_kg_h[name]
+        outlet, sig = line.outlet_pct_w_w, line.signal
+    else:
+        # delivered flows under the hidden feeder effects (per feeder, for the record)
+        for name, rec in feeders.items():
+            single = LineInputs(
+                t_s=t,
+                flows_kg_h={name: rec.flow_kg_h},
+                components={name: rec.component},
+                refilling={name: rec.refilling},
+            )
+            rec.delivered_kg_h = inlet_component_flows(single, effs)[rec.component] * 3600.0
+        outlet = outlet_concentration(run_inputs, config.blender, effs)
+        c = outlet.get(sensor.component, np.zeros(n))
+        sig = sensor_signal(t, c, effs, sensor.noise.baseline_offset)
     step = max(1, int(round(sensor.sample_period_s / dt_s)))
     sampled = np.zeros(n, dtype=bool)
     sampled[::step] = True
@@ -270,7 +304,28 @@ def simulate_line(
         disturbances=dists,
         config=config,
         seed=seed,
+        open_world=[e.to_dict() for e in ows],
+        blender=blender,
     )
+
+
+def _copied(records: Mapping[str, FeederRecord], feeder: str, n: int) -> FeederRecord:
+    """A copy of feeder ``feeder``'s record (its arrays copied), checked for length ``n``."""
+    rec = records.get(feeder)
+    if rec is None or rec.flow_kg_h.shape != (n,):
+        raise ValueError(f"feeder_records must hold feeder {feeder!r} on {n} ticks")
+    arrays = {
+        k: np.array(getattr(rec, k))
+        for k in (
+            "flow_kg_h",
+            "delivered_kg_h",
+            "screw_speed_rpm",
+            "hopper_mass_kg",
+            "refilling",
+            "feed_factor_g_rev",
+        )
+    }
+    return FeederRecord(rec.id, rec.component, refills=list(rec.refills), **arrays)
 
 
 def _line_events(
