@@ -1,6 +1,6 @@
 """Materials, pair interaction tables and time-step rules of the DEM engine.
 
-The contact law (see :mod:`twin_core.dem.kernels`) needs, for every pair of materials
+The contact law (see :mod:`twin_core.dem.contact`) needs, for every pair of materials
 (particle-particle or particle-wall), the effective moduli and the friction, rolling-friction
 and damping coefficients. They are collected here in dense ``(n_mat, n_mat)`` tables.
 

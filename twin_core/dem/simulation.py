@@ -1,7 +1,11 @@
 """The DEM simulation object: state, walls, meshes, insertion, run loop and checkpoints.
 
-See ``docs/dem_engine.md`` and :mod:`twin_core.dem.kernels` for the contact law, the integrator
-(velocity Verlet for translation and rotation) and the race-free parallel scheme.
+It owns the arrays and calls the numba kernels: :mod:`twin_core.dem.contact` (contact law),
+:mod:`~twin_core.dem.pairs` (pair forces, race-free schemes), :mod:`~twin_core.dem.walls` and
+:mod:`~twin_core.dem.meshes` (walls), :mod:`~twin_core.dem.partition` (cell grid, neighbour
+lists), :mod:`~twin_core.dem.integrator` (velocity Verlet for translation and rotation),
+:mod:`~twin_core.dem.insertion` (placement) and :mod:`~twin_core.dem.energy`; see
+``docs/dem_engine.md``.
 """
 
 from __future__ import annotations
@@ -16,10 +20,14 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from . import kernels as K
-from .insertion import BoxRegion, CylinderRegion, ParticleFactory, sample_radii
+from .energy import elastic_energy
+from .insertion import BoxRegion, CylinderRegion, ParticleFactory, rsa_place, sample_radii
+from .integrator import advance, compute_forces
 from .materials import Material, MaterialTable, hertz_contact_time, rayleigh_time
+from .meshes import update_mesh
 from .motion import RotationMotion, TranslationMotion, motion_from_dict
+from .partition import rebuild
+from .space import NPC
 
 __all__ = ["Simulation"]
 
@@ -134,7 +142,7 @@ class Simulation:
     # ----------------------------------------------------------------------------------------
     def _alloc(self, cap: int, kown: int, krev: int, ktri: int) -> None:
         self._cap = cap
-        self._P = np.zeros((cap, K.NPC))
+        self._P = np.zeros((cap, NPC))
         self._F = np.zeros((cap, 6))
         self._IA = np.zeros((cap, 3), np.int64)
         self._XB = np.zeros((cap, 3))
@@ -316,7 +324,7 @@ class Simulation:
         pg = -float(np.sum(self._P[:n, 10] * (self._P[:n, 0:3] @ self._grav)))
         self._ensure_lists()
         c = int(self._cur[0])
-        pe = K.elastic_energy(
+        pe = elastic_energy(
             n, self._P, self._IA, self._nb[c], self._nown[c], self._planes, self._cyls,
             self._pt, self._dom, self._per,
         )  # fmt: skip
@@ -458,7 +466,7 @@ class Simulation:
             cand_r = radii[:need] if m <= need else np.concatenate(
                 [radii[:need], sample_radii(radius, m - need, rng)])  # fmt: skip
             cand = region.sample(rng, cand_r)
-            acc = K.rsa_place(
+            acc = rsa_place(
                 np.concatenate([ex_pos, placed_pos]), np.concatenate([ex_r, placed_r]),
                 cand, cand_r, need, self._dom, self._per, cs,
             )  # fmt: skip
@@ -585,7 +593,7 @@ class Simulation:
         self._tri_mesh = np.concatenate([self._tri_mesh, np.full(tr.shape[0], mid, np.int64)])
         self._tri_x = self._tri_x0.copy()
         if len(self._tri_x):
-            K.update_mesh(self._tri_x0, self._tri_x, self._tri_mesh, self._mesh_par, self.t)
+            update_mesh(self._tri_x0, self._tri_x, self._tri_mesh, self._mesh_par, self.t)
         self._tri_xb = self._tri_x.copy()
         self._meshes.append({
             "vertices": v.tolist(), "triangles": tr.tolist(), "material_id": material_id,
@@ -697,7 +705,7 @@ class Simulation:
 
     def _rebuild(self) -> None:
         while True:
-            status, n_new, needed = K.rebuild(
+            status, n_new, needed = rebuild(
                 self._n, self._P, self._F, self._IA, self._XB, self._rm, self._whist,
                 self._nb, self._hist, self._nown, self._rev_o, self._rev_k, self._nrev,
                 self._cur, self._tri_nb, self._thist, self._ntri, self._tri_x, self._tri_xb,
@@ -733,7 +741,7 @@ class Simulation:
         return self.pair_scheme == "scatter"
 
     def _compute_forces(self) -> None:
-        K.compute_forces(
+        compute_forces(
             self._n, self._P, self._F, self._IA, self._whist, self._nb, self._hist, self._nown,
             self._rev_o, self._rev_k, self._nrev, self._pf, self._acc, self._cur,
             self._tri_nb, self._thist, self._ntri, self._tri_tmp, self._tri_x, self._tri_mesh,
@@ -798,7 +806,7 @@ class Simulation:
                     chunk = min(chunk, max(1, nf - self._step))
                 t0 = time.perf_counter()
                 n0 = self._n
-                status, k, n = K.advance(
+                status, k, n = advance(
                     chunk, self._step, dt, self._n, self._P, self._F, self._IA, self._XB,
                     self._rm, self._disp2, self._whist,
                     self._nb, self._hist, self._nown, self._rev_o, self._rev_k, self._nrev,

@@ -1,0 +1,169 @@
+"""Contact law of the DEM engine (LIGGGHTS' ``pair gran`` model; jax-md's ``energy``): the force
+and torque of one contact, shared by particle-particle, particle-wall and particle-mesh contacts.
+
+Per contact, overlap delta > 0, R* = R1 R2/(R1+R2), m* = m1 m2/(m1+m2) (against a wall R* = R,
+m* = m):
+
+- normal: ``F_n = (4/3) E* sqrt(R* delta) delta + d sqrt(S_n m*) v_n``,
+  ``S_n = 2 E* sqrt(R* delta)`` (Hertz; Tsuji damping), clamped at ``F_n >= 0`` (no attraction);
+- tangential: spring ``xi`` (shear displacement) kept per contact, rotated into the current
+  tangent plane each step (magnitude kept), ``xi += v_t dt``,
+  ``F_t = -S_t xi - d sqrt(S_t m*) v_t`` with ``S_t = 8 G* sqrt(R* delta)`` (Mindlin no-slip);
+  if ``|F_t| > mu_s F_n`` the force is scaled to the Coulomb limit and the spring truncated to
+  ``xi = -(F_t + d sqrt(S_t m*) v_t) / S_t`` (LAMMPS ``gran/hertz/history``);
+- rolling: constant directional torque ``-mu_r F_n R* w_rel/|w_rel|`` (LIGGGHTS ``cdt``; Ai et
+  al. 2011 model A), capped so that it cannot reverse ``w_rel`` within one step;
+- elastic energy of the normal spring: ``(8/15) E* sqrt(R*) delta^(5/2)``.
+
+The coefficients come from the material-pair tables ``pt`` (:meth:`MaterialTable.tables`):
+``pt[0]`` E*, ``pt[1]`` G*, ``pt[2]`` mu_s, ``pt[3]`` mu_r, ``pt[4]`` damping factor d.
+
+References: Hertz (1882); Mindlin & Deresiewicz (1953); Tsuji, Tanaka & Ishida (1992), Powder
+Technol. 71, 239; Brilliantov et al. (1996), Phys. Rev. E 53, 5382 (LAMMPS ``gran/hertz/history``);
+Ai, Chen, Rotter & Ooi (2011), Powder Technol. 206, 269 (rolling model A); Johnson, Contact
+Mechanics (1985), Eq. 4.23 (Hertz energy).
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+__all__ = ["clear_history", "hertz_energy", "hertz_mindlin", "rolling_torque", "wall_contact"]
+
+_TWO_THIRDS = 2.0 / 3.0
+
+
+@njit(cache=True, inline="always")
+def clear_history(h, i, k):
+    """Zero the tangential spring ``h[i, k]`` (3,) of a contact that has ended, if it is not zero
+    already (reads are cheaper than writes: most slots are clear; avoids dirtying cache lines)."""
+    if h[i, k, 0] != 0.0 or h[i, k, 1] != 0.0 or h[i, k, 2] != 0.0:
+        h[i, k, 0] = 0.0
+        h[i, k, 1] = 0.0
+        h[i, k, 2] = 0.0
+
+
+@njit(cache=True, inline="always")
+def hertz_mindlin(
+    e_star, g_star, mu, dmp, r_eff, m_eff, delta, nx, ny, nz, rvx, rvy, rvz, hx, hy, hz, dt,
+):  # fmt: skip
+    """Normal and tangential contact force (module docstring; Hertz-Mindlin no-slip, Tsuji
+    damping, Coulomb-truncated tangential spring as LAMMPS ``gran/hertz/history``).
+
+    ``F_n = (2/3) S_n delta + d sqrt(S_n m*) v_n``, ``S_n = 2 E* sqrt(R* delta)``, clamped >= 0;
+    the spring (hx, hy, hz) is rotated into the tangent plane (magnitude kept), advanced by
+    ``v_t dt``, ``F_t = -S_t xi - d sqrt(S_t m*) v_t``, ``S_t = 8 G* sqrt(R* delta)``, and if
+    ``|F_t| > mu F_n`` scaled to the limit with ``xi = -(F_t + d sqrt(S_t m*) v_t) / S_t``.
+    ``rv``: relative velocity at the contact point (first body minus second), split into
+    ``v_n = rv . n`` and ``v_t = rv - v_n n``; the dashpots use the same (half-step) velocities
+    as the springs (a velocity predicted from the previous force, v + F/m dt/2, is unstable for
+    strongly damped, many-contact beds). Returns (F_n, F_t x, y, z, new spring x, y, z).
+    """
+    vn = rvx * nx + rvy * ny + rvz * nz
+    vtx = rvx - vn * nx
+    vty = rvy - vn * ny
+    vtz = rvz - vn * nz
+    sq = math.sqrt(r_eff * delta)
+    sn = 2.0 * e_star * sq
+    st = 8.0 * g_star * sq
+    fn = _TWO_THIRDS * sn * delta + dmp * math.sqrt(sn * m_eff) * vn
+    if fn < 0.0:
+        fn = 0.0
+    h2 = hx * hx + hy * hy + hz * hz
+    if h2 > 0.0:
+        hn = hx * nx + hy * ny + hz * nz
+        hx -= hn * nx
+        hy -= hn * ny
+        hz -= hn * nz
+        h2n = hx * hx + hy * hy + hz * hz
+        if h2n > 0.0:
+            s = math.sqrt(h2 / h2n)
+            hx *= s
+            hy *= s
+            hz *= s
+    hx += vtx * dt
+    hy += vty * dt
+    hz += vtz * dt
+    ct = dmp * math.sqrt(st * m_eff)
+    ftx = -st * hx - ct * vtx
+    fty = -st * hy - ct * vty
+    ftz = -st * hz - ct * vtz
+    ft2 = ftx * ftx + fty * fty + ftz * ftz
+    fmax = mu * fn
+    if ft2 > fmax * fmax:
+        if ft2 > 0.0:
+            s = fmax / math.sqrt(ft2)
+            ftx *= s
+            fty *= s
+            ftz *= s
+            hx = -(ftx + ct * vtx) / st
+            hy = -(fty + ct * vty) / st
+            hz = -(ftz + ct * vtz) / st
+    return fn, ftx, fty, ftz, hx, hy, hz
+
+
+@njit(cache=True, inline="always")
+def rolling_torque(mur, fn, r_eff, rwx, rwy, rwz, dt_inv_i):
+    """Constant directional rolling torque ``-mu_r F_n R* w_rel/|w_rel|`` (LIGGGHTS ``cdt``;
+    Ai et al. 2011 model A), capped at ``|w_rel| / (dt (1/I_1 + 1/I_2))`` so that it cannot
+    reverse the relative rotation within a step (``dt_inv_i`` = dt times that inverse-inertia
+    sum). Returns the torque on the first body."""
+    if mur > 0.0:
+        wm = math.sqrt(rwx * rwx + rwy * rwy + rwz * rwz)
+        if wm > 0.0:
+            tr = mur * fn * r_eff
+            tcap = wm / dt_inv_i
+            if tr > tcap:
+                tr = tcap
+            return -tr * rwx / wm, -tr * rwy / wm, -tr * rwz / wm
+    return 0.0, 0.0, 0.0
+
+
+@njit(cache=True, inline="always")
+def hertz_energy(e_star, r_eff, delta):
+    """Elastic energy ``(8/15) E* sqrt(R*) delta^(5/2)`` of a Hertz contact of overlap delta
+    (the potential of the normal spring ``F_n = (4/3) E* sqrt(R*) delta^(3/2)``; Johnson 1985)."""
+    return 8.0 / 15.0 * e_star * math.sqrt(r_eff) * delta**2.5
+
+
+@njit(cache=True)
+def wall_contact(
+    x, y, z, vx, vy, vz, wx, wy, wz, r, m, inv_i, mat_p,
+    nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,
+):  # fmt: skip
+    """Hertz-Mindlin force and torque on a sphere touching an infinitely massive wall (module
+    docstring, with R* = R, m* = m).
+
+    ``n`` points from the sphere centre to the contact; the lever arm is ``r - delta``; the wall
+    moves at ``vw`` at the contact point and rotates at ``ww``. Returns (fx, fy, fz, tx, ty, tz);
+    ``hist`` (3,) is the tangential spring, updated in place.
+    """
+    e_star = pt[0, mat_p, mat_w]
+    g_star = pt[1, mat_p, mat_w]
+    mu = pt[2, mat_p, mat_w]
+    mur = pt[3, mat_p, mat_w]
+    dmp = pt[4, mat_p, mat_w]
+    c = r - delta
+    # contact point velocity of the sphere minus wall velocity
+    rvx = vx + c * (wy * nz - wz * ny) - vwx
+    rvy = vy + c * (wz * nx - wx * nz) - vwy
+    rvz = vz + c * (wx * ny - wy * nx) - vwz
+    fn, ftx, fty, ftz, hx, hy, hz = hertz_mindlin(
+        e_star, g_star, mu, dmp, r, m, delta, nx, ny, nz, rvx, rvy, rvz,
+        hist[0], hist[1], hist[2], dt,
+    )  # fmt: skip
+    hist[0] = hx
+    hist[1] = hy
+    hist[2] = hz
+    fx = -fn * nx + ftx
+    fy = -fn * ny + fty
+    fz = -fn * nz + ftz
+    # torque of the tangential force: (c n) x ft
+    tx = c * (ny * ftz - nz * fty)
+    ty = c * (nz * ftx - nx * ftz)
+    tz = c * (nx * fty - ny * ftx)
+    # rolling friction (constant directional torque)
+    trx, try_, trz = rolling_torque(mur, fn, r, wx - wwx, wy - wwy, wz - wwz, dt * inv_i)
+    return fx, fy, fz, tx + trx, ty + try_, tz + trz

@@ -1,0 +1,247 @@
+"""Time integration of the DEM engine (jax-md's ``simulate``; LIGGGHTS' ``fix nve/sphere``):
+velocity Verlet for translation and rotation, with the force evaluation of each step.
+
+One step (spheres: no gyroscopic term)::
+
+    v += F/m dt/2;  w += T/I dt/2;  x += v dt      (kick_drift; periodic wrap)
+    F, T = pairs + walls + meshes + m g at x(t + dt), half-step velocities
+    v += F/m dt/2;  w += T/I dt/2                  (gather_pass)
+
+Before each drift the Verlet skin criterion (:func:`twin_core.dem.partition.rebuild_due`)
+decides whether the lists are rebuilt; the displacement that the next drift will give each
+particle is predicted at the end of the previous step (fused into ``gather_pass``), together
+with its removal code when the drift takes it out of the domain or into a sink. The pair forces
+come from one of the two schemes of :mod:`twin_core.dem.pairs` (the serial scatter on one
+thread, the two-pass scheme otherwise; bit-identical).
+
+References: Verlet (1967), Phys. Rev. 159, 98; Swope, Andersen, Berens & Wilson (1982),
+J. Chem. Phys. 76, 637 (velocity form); Allen & Tildesley, Computer Simulation of Liquids
+(2nd ed. 2017), Sec. 3.2 and 3.3 (rigid-body rotation).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from .meshes import add_mesh_contacts, update_mesh
+from .pairs import gather_pair_slots, pair_pass, pair_scatter
+from .partition import rebuild, rebuild_due
+from .space import min_image
+from .walls import add_cylinder_contacts, add_plane_contacts
+
+__all__ = ["advance", "compute_forces", "gather_pass", "kick_drift", "predict"]
+
+
+@njit(cache=True, parallel=True)
+def kick_drift(n, P, F, dom, per, dt):
+    """Velocity Verlet first half: ``v += F/m dt/2; w += T/I dt/2; x += v dt``; wrap periodic."""
+    hdt = 0.5 * dt
+    for i in prange(n):
+        invm = P[i, 11]
+        inv_i = P[i, 12]
+        for a in range(3):
+            P[i, 3 + a] += F[i, a] * invm * hdt
+            P[i, 6 + a] += F[i, 3 + a] * inv_i * hdt
+            x = P[i, a] + P[i, 3 + a] * dt
+            if per[a] != 0:
+                if x < dom[a]:
+                    x += dom[6 + a]
+                elif x >= dom[3 + a]:
+                    x -= dom[6 + a]
+            P[i, a] = x
+
+
+@njit(cache=True)
+def _predict_one(i, P, F, XB, rm, dom, per, sinks, dt, disp2):
+    """Squared displacement (minimum image) since the last build that the next drift gives
+    particle i, and its removal code if that drift takes it out of the domain (2) or into sink s
+    (3 + s)."""
+    hdt = 0.5 * dt
+    invm = P[i, 11]
+    d2 = 0.0
+    lost = False
+    xn0 = 0.0
+    xn1 = 0.0
+    xn2 = 0.0
+    for a in range(3):
+        v = P[i, 3 + a] + F[i, a] * invm * hdt
+        xn = P[i, a] + v * dt
+        if a == 0:
+            xn0 = xn
+        elif a == 1:
+            xn1 = xn
+        else:
+            xn2 = xn
+        d = min_image(xn - XB[i, a], dom[6 + a], per[a] != 0)
+        d2 += d * d
+        if per[a] == 0 and (xn < dom[a] or xn > dom[3 + a]):
+            lost = True
+    disp2[i] = d2
+    if rm[i] == 0:
+        if lost:
+            rm[i] = 2
+        else:
+            for s in range(sinks.shape[0]):
+                if (
+                    sinks[s, 0] <= xn0 <= sinks[s, 3]
+                    and sinks[s, 1] <= xn1 <= sinks[s, 4]
+                    and sinks[s, 2] <= xn2 <= sinks[s, 5]
+                ):
+                    rm[i] = 3 + s
+                    break
+
+
+@njit(cache=True, parallel=True)
+def predict(n, P, F, XB, rm, dom, per, sinks, dt, disp2):
+    """:func:`_predict_one` for every particle."""
+    for i in prange(n):
+        _predict_one(i, P, F, XB, rm, dom, per, sinks, dt, disp2)
+
+
+@njit(cache=True)
+def _store_and_kick(i, P, F, grav, dt, fx, fy, fz, tx, ty, tz):
+    """Add gravity ``m g`` to particle i's force, store force and torque in ``F[i]`` and apply
+    the second half kick ``v += F/m dt/2; w += T/I dt/2``."""
+    hdt = 0.5 * dt
+    m = P[i, 10]
+    fx += m * grav[0]
+    fy += m * grav[1]
+    fz += m * grav[2]
+    F[i, 0] = fx
+    F[i, 1] = fy
+    F[i, 2] = fz
+    F[i, 3] = tx
+    F[i, 4] = ty
+    F[i, 5] = tz
+    invm = P[i, 11]
+    inv_i = P[i, 12]
+    P[i, 3] += fx * invm * hdt
+    P[i, 4] += fy * invm * hdt
+    P[i, 5] += fz * invm * hdt
+    P[i, 6] += tx * inv_i * hdt
+    P[i, 7] += ty * inv_i * hdt
+    P[i, 8] += tz * inv_i * hdt
+
+
+@njit(cache=True, parallel=True)
+def gather_pass(
+    n, P, F, IA, nown, pf, nrev, rev_o, rev_k, use_acc, acc,
+    planes, cyls, whist,
+    ntri, tri_nb, thist, tri_tmp, tri_x, tri_mesh, mesh_par,
+    pt, dom, per, grav, dt, t, predict_next, XB, rm, sinks, disp2,
+):  # fmt: skip
+    """Pass 2: total force/torque on each particle (pairs, planes, cylinders, meshes, gravity,
+    summed in that order); half kick.
+
+    Pair sums: with ``use_acc`` they are read from ``acc`` (filled by
+    :func:`twin_core.dem.pairs.pair_scatter`); otherwise they are gathered from the slots ``pf``
+    of :func:`twin_core.dem.pairs.pair_pass` in the scatter's order (bit-identical sums).
+    With ``predict_next`` it also does the work of :func:`predict` for the next step (fused to
+    save a parallel region per step). Every particle writes only its own rows.
+    """
+    npl = planes.shape[0]
+    for i in prange(n):
+        if use_acc:
+            fx, fy, fz = acc[i, 0], acc[i, 1], acc[i, 2]
+            tx, ty, tz = acc[i, 3], acc[i, 4], acc[i, 5]
+        else:
+            fx, fy, fz, tx, ty, tz = gather_pair_slots(i, P[i, 9], pf, nrev, rev_o, rev_k, nown)
+        fx, fy, fz, tx, ty, tz = add_plane_contacts(
+            i, P, IA, planes, whist, pt, dt, fx, fy, fz, tx, ty, tz
+        )
+        fx, fy, fz, tx, ty, tz = add_cylinder_contacts(
+            i, P, IA, cyls, npl, whist, pt, dt, fx, fy, fz, tx, ty, tz
+        )
+        fx, fy, fz, tx, ty, tz = add_mesh_contacts(
+            i, P, IA, ntri, tri_nb, thist, tri_tmp, tri_x, tri_mesh, mesh_par, pt, dom, per, dt,
+            t, fx, fy, fz, tx, ty, tz,
+        )  # fmt: skip
+        _store_and_kick(i, P, F, grav, dt, fx, fy, fz, tx, ty, tz)
+        if predict_next:
+            _predict_one(i, P, F, XB, rm, dom, per, sinks, dt, disp2)
+
+
+@njit(cache=True)
+def advance(
+    nsteps, step0, dt, n, P, F, IA, XB, rm, disp2, whist,
+    nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, cur,
+    tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x0, tri_x, tri_xb, tri_mesh, mesh_par, any_moving,
+    planes, cyls, sinks, pt, dom, per, grav, skin, rmax, removed, counters, serial,
+):  # fmt: skip
+    """Advance up to ``nsteps`` velocity-Verlet steps.
+
+    Each step: (1) predict the drift; rebuild the lists first if the skin criterion asks for it
+    (:func:`twin_core.dem.partition.rebuild_due`); (2) half kick + drift; (3) move meshes;
+    (4) pass 1 and pass 2 forces + half kick (``serial``, for one thread:
+    :func:`twin_core.dem.pairs.pair_scatter` instead of pass 1, bit-identical). Returns (status,
+    steps_done, n); status != 0 means a list must be enlarged (``counters[2]`` holds the needed
+    size) before calling again.
+    """
+    meshes_move = any_moving and tri_x.shape[0] > 0
+    predict(n, P, F, XB, rm, dom, per, sinks, dt, disp2)
+    for s in range(nsteps):
+        t_new = (step0 + s + 1) * dt
+        if rebuild_due(n, disp2, rm, counters, skin, any_moving, tri_x0, tri_x, tri_xb,
+                       tri_mesh, mesh_par, t_new):  # fmt: skip
+            if meshes_move:
+                update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, (step0 + s) * dt)
+            status, n_new, needed = rebuild(
+                n, P, F, IA, XB, rm, whist,
+                nb_b, hist_b, nown_b, rev_o, rev_k, nrev, cur,
+                tri_nb_b, thist_b, ntri_b, tri_x, tri_xb,
+                dom, per, skin, rmax, removed,
+            )  # fmt: skip
+            if status != 0:
+                counters[2] = needed
+                return status, s, n
+            n = n_new
+            counters[0] = 0
+            counters[1] += 1
+            if meshes_move:
+                update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
+        kick_drift(n, P, F, dom, per, dt)
+        c = cur[0]
+        if serial:
+            pair_scatter(n, P, IA, nb_b[c], nown_b[c], hist_b[c], acc, pt, dom, per, dt)
+        else:
+            pair_pass(n, P, F, IA, nb_b[c], nown_b[c], hist_b[c], pf, pt, dom, per, dt)
+        gather_pass(
+            n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc,
+            planes, cyls, whist,
+            ntri_b[c], tri_nb_b[c], thist_b[c], tri_tmp, tri_x, tri_mesh, mesh_par,
+            pt, dom, per, grav, dt, t_new, True, XB, rm, sinks, disp2,
+        )  # fmt: skip
+    return 0, nsteps, n
+
+
+@njit(cache=True)
+def compute_forces(
+    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, cur,
+    tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
+    planes, cyls, pt, dom, per, grav, dt, t, serial,
+):  # fmt: skip
+    """Forces at the current state without moving (used once before the first step).
+
+    The history increment of this evaluation is undone by restoring copies, and the half kick of
+    pass 2 is undone, so the state is unchanged apart from ``F``."""
+    c = cur[0]
+    h = hist_b[c].copy()
+    th = thist_b[c].copy()
+    wh = whist.copy()
+    v = P[:n, 3:9].copy()
+    if serial:
+        pair_scatter(n, P, IA, nb_b[c], nown_b[c], hist_b[c], acc, pt, dom, per, dt)
+    else:
+        pair_pass(n, P, F, IA, nb_b[c], nown_b[c], hist_b[c], pf, pt, dom, per, dt)
+    gather_pass(
+        n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc,
+        planes, cyls, whist,
+        ntri_b[c], tri_nb_b[c], thist_b[c], tri_tmp, tri_x, tri_mesh, mesh_par,
+        pt, dom, per, grav, dt, t, False, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 6)),
+        np.zeros(0),
+    )  # fmt: skip
+    hist_b[c][:] = h
+    thist_b[c][:] = th
+    whist[:] = wh
+    P[:n, 3:9] = v

@@ -1,0 +1,325 @@
+"""Triangle-mesh walls of the DEM engine (LIGGGHTS' ``fix mesh/surface`` and ``fix
+wall/gran``): triangle geometry, prescribed mesh motion and the contacts of a sphere with the
+candidate triangles of its list (built in :mod:`twin_core.dem.partition`).
+
+- Geometry: closest point of a triangle to a point with its feature (face, edge, vertex); the
+  image of a particle nearest to a triangle on periodic axes (minimum image about the centroid).
+- Motion: ``mesh_par`` rows (kind 0 static, 1 rotation, 2 translation; axis point, axis, omega,
+  velocity, motion window, activation window, material); rotation by Rodrigues' formula
+  ``x' = a + p cos th + (u x p) sin th + u (u.p)(1 - cos th)``, ``p = x0 - a``.
+- Contact: face contacts always count; an edge/vertex contact is dropped when its contact point
+  coincides with one already counted or lies on a triangle that has a face contact (a sphere on a
+  flat or convex tessellated surface feels one contact, not one per triangle); the dropped
+  contact copies the tangential history of the contact that shadows it, so the history follows a
+  sphere sliding from one triangle to the next. The force is the wall contact law of
+  :mod:`twin_core.dem.contact` with the mesh velocity at the contact point.
+
+References: Ericson, Real-Time Collision Detection (2005), Sec. 5.1.5 (closest point on a
+triangle); Su, Gu & Xu (2011), Chem. Eng. Sci. 66, 6069 (one contact per sphere on tessellated
+walls: edge and vertex contacts shadowed by face contacts); Kloss et al. (2012), Prog. Comput.
+Fluid Dyn. 12, 140 (LIGGGHTS mesh walls).
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit, prange
+
+from .contact import clear_history, wall_contact
+from .space import min_image
+
+__all__ = [
+    "add_mesh_contacts",
+    "closest_point_triangle",
+    "dist_point_tri",
+    "max_tri_disp2",
+    "mesh_state",
+    "tri_periodic_point",
+    "update_mesh",
+]
+
+
+@njit(cache=True)
+def closest_point_triangle(px, py, pz, tri):
+    """Closest point of triangle ``tri`` (9 floats: a, b, c) to point p.
+
+    Returns (cx, cy, cz, feature) with feature 0 = face interior, 1 = edge, 2 = vertex.
+    Reference: Ericson, Real-Time Collision Detection (2005), Sec. 5.1.5.
+    """
+    ax, ay, az = tri[0], tri[1], tri[2]
+    bx, by, bz = tri[3], tri[4], tri[5]
+    cx, cy, cz = tri[6], tri[7], tri[8]
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1 = abx * apx + aby * apy + abz * apz
+    d2 = acx * apx + acy * apy + acz * apz
+    if d1 <= 0.0 and d2 <= 0.0:
+        return ax, ay, az, 2
+    bpx, bpy, bpz = px - bx, py - by, pz - bz
+    d3 = abx * bpx + aby * bpy + abz * bpz
+    d4 = acx * bpx + acy * bpy + acz * bpz
+    if d3 >= 0.0 and d4 <= d3:
+        return bx, by, bz, 2
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        v = d1 / (d1 - d3)
+        return ax + v * abx, ay + v * aby, az + v * abz, 1
+    cpx, cpy, cpz = px - cx, py - cy, pz - cz
+    d5 = abx * cpx + aby * cpy + abz * cpz
+    d6 = acx * cpx + acy * cpy + acz * cpz
+    if d6 >= 0.0 and d5 <= d6:
+        return cx, cy, cz, 2
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        w = d2 / (d2 - d6)
+        return ax + w * acx, ay + w * acy, az + w * acz, 1
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz), 1
+    denom = 1.0 / (va + vb + vc)
+    v = vb * denom
+    w = vc * denom
+    return (
+        ax + abx * v + acx * w,
+        ay + aby * v + acy * w,
+        az + abz * v + acz * w,
+        0,
+    )
+
+
+@njit(cache=True)
+def tri_periodic_point(px, py, pz, tri, dom, per):
+    """Image of p nearest to the triangle centroid (minimum image on periodic axes)."""
+    gx = (tri[0] + tri[3] + tri[6]) / 3.0
+    gy = (tri[1] + tri[4] + tri[7]) / 3.0
+    gz = (tri[2] + tri[5] + tri[8]) / 3.0
+    qx = gx + min_image(px - gx, dom[6], per[0] != 0)
+    qy = gy + min_image(py - gy, dom[7], per[1] != 0)
+    qz = gz + min_image(pz - gz, dom[8], per[2] != 0)
+    return qx, qy, qz
+
+
+@njit(cache=True)
+def dist_point_tri(px, py, pz, tri):
+    """Distance of point p to triangle ``tri`` (9 floats)."""
+    cx, cy, cz, _ = closest_point_triangle(px, py, pz, tri)
+    return math.sqrt((px - cx) ** 2 + (py - cy) ** 2 + (pz - cz) ** 2)
+
+
+@njit(cache=True)
+def mesh_state(mesh_par, m, t):
+    """Motion of mesh m at time t.
+
+    Returns (active, kind, theta, omega, dx, dy, dz, vx, vy, vz): ``kind`` 0 static, 1 rotation,
+    2 translation; ``theta`` the rotation angle, ``omega`` the current angular speed (rad/s) and
+    ``d``/``v`` the translation and its current velocity.
+    """
+    kind = int(mesh_par[m, 0])
+    t_start, t_end = mesh_par[m, 11], mesh_par[m, 12]
+    active = mesh_par[m, 13] <= t < mesh_par[m, 14]
+    tc = min(max(t, t_start), t_end)
+    moving = t_start <= t < t_end
+    theta = 0.0
+    omega = 0.0
+    dx = dy = dz = 0.0
+    vx = vy = vz = 0.0
+    if kind == 1:
+        theta = mesh_par[m, 7] * (tc - t_start)
+        if moving:
+            omega = mesh_par[m, 7]
+    elif kind == 2:
+        dx = mesh_par[m, 8] * (tc - t_start)
+        dy = mesh_par[m, 9] * (tc - t_start)
+        dz = mesh_par[m, 10] * (tc - t_start)
+        if moving:
+            vx, vy, vz = mesh_par[m, 8], mesh_par[m, 9], mesh_par[m, 10]
+    return active, kind, theta, omega, dx, dy, dz, vx, vy, vz
+
+
+@njit(cache=True, parallel=True)
+def update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t):
+    """Place every triangle of a moving mesh at time t (Rodrigues rotation about the mesh axis or
+    translation), from its reference coordinates ``tri_x0``."""
+    nt = tri_x0.shape[0]
+    for q in prange(nt):
+        m = tri_mesh[q]
+        kind = int(mesh_par[m, 0])
+        if kind == 0:
+            continue
+        _, _, theta, _, dx, dy, dz, _, _, _ = mesh_state(mesh_par, m, t)
+        if kind == 1:
+            ax, ay, az = mesh_par[m, 1], mesh_par[m, 2], mesh_par[m, 3]
+            ux, uy, uz = mesh_par[m, 4], mesh_par[m, 5], mesh_par[m, 6]
+            ct = math.cos(theta)
+            s = math.sin(theta)
+            for v in range(3):
+                px = tri_x0[q, 3 * v] - ax
+                py = tri_x0[q, 3 * v + 1] - ay
+                pz = tri_x0[q, 3 * v + 2] - az
+                kd = ux * px + uy * py + uz * pz
+                cx = uy * pz - uz * py
+                cy = uz * px - ux * pz
+                cz = ux * py - uy * px
+                tri_x[q, 3 * v] = ax + px * ct + cx * s + ux * kd * (1.0 - ct)
+                tri_x[q, 3 * v + 1] = ay + py * ct + cy * s + uy * kd * (1.0 - ct)
+                tri_x[q, 3 * v + 2] = az + pz * ct + cz * s + uz * kd * (1.0 - ct)
+        else:
+            for v in range(3):
+                tri_x[q, 3 * v] = tri_x0[q, 3 * v] + dx
+                tri_x[q, 3 * v + 1] = tri_x0[q, 3 * v + 1] + dy
+                tri_x[q, 3 * v + 2] = tri_x0[q, 3 * v + 2] + dz
+
+
+@njit(cache=True)
+def max_tri_disp2(tri_x, tri_xb):
+    """Largest squared displacement of a triangle vertex since the last build (``tri_xb``)."""
+    m = 0.0
+    for q in range(tri_x.shape[0]):
+        for v in range(3):
+            d = (
+                (tri_x[q, 3 * v] - tri_xb[q, 3 * v]) ** 2
+                + (tri_x[q, 3 * v + 1] - tri_xb[q, 3 * v + 1]) ** 2
+                + (tri_x[q, 3 * v + 2] - tri_xb[q, 3 * v + 2]) ** 2
+            )
+            if d > m:
+                m = d
+    return m
+
+
+@njit(cache=True)
+def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tmp, dom, per, t):
+    """First sweep over the candidate triangles of particle i: closest point (cx, cy, cz),
+    distance and feature of each triangle of an active mesh that the sphere overlaps, stored in
+    ``tri_tmp[i, k]`` (feature -1: no contact, its history cleared). Returns the contact count."""
+    x, y, z = P[i, 0], P[i, 1], P[i, 2]
+    ri = P[i, 9]
+    ncont = 0
+    for k in range(nt):
+        q = tri_nb[i, k]
+        mesh = tri_mesh[q]
+        tri = tri_x[q]
+        tri_tmp[i, k, 4] = -1.0
+        if not (mesh_par[mesh, 13] <= t < mesh_par[mesh, 14]):
+            clear_history(thist, i, k)
+            continue
+        qx, qy, qz = tri_periodic_point(x, y, z, tri, dom, per)
+        cpx, cpy, cpz, feat = closest_point_triangle(qx, qy, qz, tri)
+        ddx, ddy, ddz = cpx - qx, cpy - qy, cpz - qz
+        dist = math.sqrt(ddx * ddx + ddy * ddy + ddz * ddz)
+        if dist >= ri or dist == 0.0:
+            clear_history(thist, i, k)
+            continue
+        tri_tmp[i, k, 0] = cpx
+        tri_tmp[i, k, 1] = cpy
+        tri_tmp[i, k, 2] = cpz
+        tri_tmp[i, k, 3] = dist
+        tri_tmp[i, k, 4] = feat
+        ncont += 1
+    return ncont
+
+
+@njit(cache=True)
+def _shadowing_contact(i, k, nt, tol, tri_tmp, tri_nb, tri_x):
+    """The accepted contact (``tri_tmp`` feature 10 + f) that shadows the edge/vertex contact k
+    of particle i: same contact point within ``tol``, or k's contact point lies on a triangle
+    with an accepted face contact. Returns its slot, or -1."""
+    cpx, cpy, cpz = tri_tmp[i, k, 0], tri_tmp[i, k, 1], tri_tmp[i, k, 2]
+    for k2 in range(nt):
+        f2 = tri_tmp[i, k2, 4]
+        if f2 < 10.0:  # not (yet) accepted
+            continue
+        ddx = cpx - tri_tmp[i, k2, 0]
+        ddy = cpy - tri_tmp[i, k2, 1]
+        ddz = cpz - tri_tmp[i, k2, 2]
+        if ddx * ddx + ddy * ddy + ddz * ddz < tol * tol:
+            return k2
+        if f2 == 10.0:
+            if dist_point_tri(cpx, cpy, cpz, tri_x[tri_nb[i, k2]]) < tol:
+                return k2
+    return -1
+
+
+@njit(cache=True)
+def _wall_motion(mesh_par, mesh, t, cpx, cpy, cpz):
+    """Velocity of mesh ``mesh`` at the contact point c at time t and its angular velocity:
+    ``omega u x (c - a)`` and ``omega u`` for a rotation, the translation velocity otherwise."""
+    _, kind, _, om, _, _, _, tvx, tvy, tvz = mesh_state(mesh_par, mesh, t)
+    vwx, vwy, vwz = tvx, tvy, tvz
+    wwx = wwy = wwz = 0.0
+    if kind == 1 and om != 0.0:
+        ux, uy, uz = mesh_par[mesh, 4], mesh_par[mesh, 5], mesh_par[mesh, 6]
+        rx = cpx - mesh_par[mesh, 1]
+        ry = cpy - mesh_par[mesh, 2]
+        rz = cpz - mesh_par[mesh, 3]
+        vwx = om * (uy * rz - uz * ry)
+        vwy = om * (uz * rx - ux * rz)
+        vwz = om * (ux * ry - uy * rx)
+        wwx, wwy, wwz = om * ux, om * uy, om * uz
+    return vwx, vwy, vwz, wwx, wwy, wwz
+
+
+@njit(cache=True)
+def _triangle_contact(i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt,
+                      dom, per, dt, t):  # fmt: skip
+    """Force and torque (6) on particle i of its accepted contact with candidate triangle k
+    (contact point and distance from ``tri_tmp``); updates the history ``thist[i, k]``."""
+    cpx, cpy, cpz = tri_tmp[i, k, 0], tri_tmp[i, k, 1], tri_tmp[i, k, 2]
+    q = tri_nb[i, k]
+    mesh = tri_mesh[q]
+    dist = tri_tmp[i, k, 3]
+    qx, qy, qz = tri_periodic_point(P[i, 0], P[i, 1], P[i, 2], tri_x[q], dom, per)
+    nx = (cpx - qx) / dist
+    ny = (cpy - qy) / dist
+    nz = (cpz - qz) / dist
+    vwx, vwy, vwz, wwx, wwy, wwz = _wall_motion(mesh_par, mesh, t, cpx, cpy, cpz)
+    return wall_contact(
+        P[i, 0], P[i, 1], P[i, 2], P[i, 3], P[i, 4], P[i, 5], P[i, 6], P[i, 7], P[i, 8],
+        P[i, 9], P[i, 10], P[i, 12], IA[i, 1],
+        nx, ny, nz, P[i, 9] - dist, vwx, vwy, vwz, wwx, wwy, wwz,
+        int(mesh_par[mesh, 15]), pt, thist[i, k], dt,
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def add_mesh_contacts(
+    i, P, IA, ntri, tri_nb, thist, tri_tmp, tri_x, tri_mesh, mesh_par, pt, dom, per, dt, t,
+    fx, fy, fz, tx, ty, tz,
+):  # fmt: skip
+    """Add to particle i's force and torque (fx .. tz) its mesh contacts (module docstring):
+    faces first, then edges, then vertices, each dropped when shadowed (it then copies the
+    shadowing contact's history). Returns the new (fx, fy, fz, tx, ty, tz)."""
+    nt = ntri[i]
+    if nt == 0:
+        return fx, fy, fz, tx, ty, tz
+    if _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tmp, dom, per,
+                         t) == 0:  # fmt: skip
+        return fx, fy, fz, tx, ty, tz
+    tol = 1e-7 * P[i, 9]
+    # faces first (feature 0), then edges (1), then vertices (2)
+    for feat_pass in range(3):
+        for k in range(nt):
+            if tri_tmp[i, k, 4] != feat_pass:
+                continue
+            shadow = -1
+            if feat_pass > 0:
+                shadow = _shadowing_contact(i, k, nt, tol, tri_tmp, tri_nb, tri_x)
+            if shadow >= 0:
+                thist[i, k, 0] = thist[i, shadow, 0]
+                thist[i, k, 1] = thist[i, shadow, 1]
+                thist[i, k, 2] = thist[i, shadow, 2]
+                tri_tmp[i, k, 4] = -1.0
+                continue
+            tri_tmp[i, k, 4] = 10.0 + feat_pass
+            a, b, c, d, e, f = _triangle_contact(
+                i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt, dom, per, dt, t
+            )
+            fx += a
+            fy += b
+            fz += c
+            tx += d
+            ty += e
+            tz += f
+    return fx, fy, fz, tx, ty, tz

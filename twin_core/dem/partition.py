@@ -1,0 +1,375 @@
+"""Partition of space for the DEM engine (jax-md's ``partition``; LIGGGHTS' ``neighbor``): the
+cell grid, the half neighbour list of particle pairs, its reverse list, the candidate triangles
+of each particle, and the Verlet skin criterion that decides when they are rebuilt.
+
+- Cell grid: cubic-ish cells of size >= ``2 r_max + skin`` (so every pair within the cut-off
+  ``r_i + r_j + skin`` lies in neighbouring cells), minimum image on periodic axes.
+- Rebuild: particles flagged for removal are dropped, the others counting-sorted by cell (their
+  rows permuted, for memory locality); the half list (pair (i, j), i < j, owned by i in
+  ``nb[i, k]``) and the triangle lists are built against the old ones through the permutation,
+  so each tangential history is carried over (its sign flipped when the owner of a pair changes).
+  Lists are double-buffered (``cur`` selects the live one); a list that overflows its width makes
+  the rebuild return a status with the width needed, with nothing modified.
+- Skin criterion: rebuild when a particle would move more than skin/2 since the last build, or a
+  moving mesh plus a particle more than the skin, or a particle is to be removed.
+
+References: Allen & Tildesley, Computer Simulation of Liquids (2nd ed. 2017), Sec. 5.3 (Verlet
+lists, skin) and 5.3.2 (cell lists); Plimpton (1995), J. Comput. Phys. 117, 1 (half lists,
+Newton's third law); LIGGGHTS ``neighbor``/``fix contacthistory`` (history carried across
+rebuilds).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from .meshes import dist_point_tri, max_tri_disp2, tri_periodic_point, update_mesh
+from .space import min_image
+
+__all__ = ["axis_cells", "cell_of", "rebuild", "rebuild_due"]
+
+
+@njit(cache=True)
+def axis_cells(c, ncell, periodic, out):
+    """Neighbouring cell indices of cell c along one axis (deduplicated) into ``out`` (3,);
+    returns their count."""
+    if periodic:
+        if ncell < 3:
+            for a in range(ncell):
+                out[a] = a
+            return ncell
+        out[0] = (c - 1) % ncell
+        out[1] = c
+        out[2] = (c + 1) % ncell
+        return 3
+    m = 0
+    for d in (-1, 0, 1):
+        cc = c + d
+        if 0 <= cc < ncell:
+            out[m] = cc
+            m += 1
+    return m
+
+
+@njit(cache=True)
+def cell_of(x, lo, cs, ncell, periodic):
+    """Cell index ``floor((x - lo) / cs)`` along one axis (wrapped on a periodic axis, clamped
+    to the grid otherwise)."""
+    c = int(math.floor((x - lo) / cs))
+    if periodic:
+        c %= ncell
+    else:
+        if c < 0:
+            c = 0
+        elif c >= ncell:
+            c = ncell - 1
+    return c
+
+
+@njit(cache=True)
+def _cell_grid(dom, rmax, skin):
+    """Cells per axis (at least one, of size >= ``2 r_max + skin``) and their sizes (3,)."""
+    cs_min = 2.0 * rmax + skin
+    ncx = max(1, int(dom[6] / cs_min))
+    ncy = max(1, int(dom[7] / cs_min))
+    ncz = max(1, int(dom[8] / cs_min))
+    cs = np.array([dom[6] / ncx, dom[7] / ncy, dom[8] / ncz])
+    return ncx, ncy, ncz, cs
+
+
+@njit(cache=True)
+def _sort_by_cell(n, P, rm, dom, per, cs, ncx, ncy, ncz):
+    """Counting sort of the particles by cell, flagged ones (``rm != 0``) last and dropped.
+
+    Returns (perm, cell_new, cstart, n_new): new row i is old row ``perm[i]``, in cell
+    ``cell_new[i]``; the rows of cell c are ``cstart[c]:cstart[c + 1]``."""
+    ncell = ncx * ncy * ncz
+    cell_old = np.empty(n, np.int64)
+    counts = np.zeros(ncell + 2, np.int64)
+    for i in range(n):
+        if rm[i] != 0:
+            cell_old[i] = ncell
+        else:
+            cx = cell_of(P[i, 0], dom[0], cs[0], ncx, per[0] != 0)
+            cy = cell_of(P[i, 1], dom[1], cs[1], ncy, per[1] != 0)
+            cz = cell_of(P[i, 2], dom[2], cs[2], ncz, per[2] != 0)
+            cell_old[i] = (cx * ncy + cy) * ncz + cz
+        counts[cell_old[i] + 1] += 1
+    for c in range(ncell + 1):
+        counts[c + 1] += counts[c]
+    cstart = counts[: ncell + 1].copy()
+    fill = counts.copy()
+    perm = np.empty(n, np.int64)
+    for i in range(n):
+        c = cell_old[i]
+        perm[fill[c]] = i
+        fill[c] += 1
+    n_new = cstart[ncell]
+    cell_new = np.empty(n_new, np.int64)
+    for i in range(n_new):
+        cell_new[i] = cell_old[perm[i]]
+    return perm, cell_new, cstart, n_new
+
+
+@njit(cache=True)
+def _carried_history(nb_old, n_old, hist_old, row, partner, sign):
+    """The tangential spring of the old list's slot (row, partner) times ``sign`` (zero when the
+    pair was not listed)."""
+    for kk in range(n_old[row]):
+        if nb_old[row, kk] == partner:
+            return (
+                sign * hist_old[row, kk, 0],
+                sign * hist_old[row, kk, 1],
+                sign * hist_old[row, kk, 2],
+            )
+    return 0.0, 0.0, 0.0
+
+
+@njit(cache=True, parallel=True)
+def _build_own(
+    n_new, perm, P, cell_of_new, cstart, ncx, ncy, ncz, dom, per, skin,
+    nb_old, nown_old, hist_old, nb_new, nown_new, hist_new, kmax,
+):  # fmt: skip
+    """Half neighbour list in the new (sorted) order with history carried over; returns the
+    width needed when ``kmax`` is too small (0 otherwise)."""
+    l0, l1, l2 = dom[6], dom[7], dom[8]
+    p0, p1, p2 = per[0] != 0, per[1] != 0, per[2] != 0
+    over = 0
+    for i in prange(n_new):
+        cxs = np.empty(3, np.int64)
+        cys = np.empty(3, np.int64)
+        czs = np.empty(3, np.int64)
+        oi = perm[i]
+        xi, yi, zi, ri = P[oi, 0], P[oi, 1], P[oi, 2], P[oi, 9]
+        c = cell_of_new[i]
+        mx = axis_cells(c // (ncz * ncy), ncx, p0, cxs)
+        my = axis_cells((c // ncz) % ncy, ncy, p1, cys)
+        mz = axis_cells(c % ncz, ncz, p2, czs)
+        cnt = 0
+        for a in range(mx):
+            for b in range(my):
+                for e in range(mz):
+                    cell = (cxs[a] * ncy + cys[b]) * ncz + czs[e]
+                    for j in range(cstart[cell], cstart[cell + 1]):
+                        if j <= i:
+                            continue
+                        oj = perm[j]
+                        dx = min_image(P[oj, 0] - xi, l0, p0)
+                        dy = min_image(P[oj, 1] - yi, l1, p1)
+                        dz = min_image(P[oj, 2] - zi, l2, p2)
+                        cut = ri + P[oj, 9] + skin
+                        if dx * dx + dy * dy + dz * dz < cut * cut:
+                            if cnt < kmax:
+                                nb_new[i, cnt] = j
+                                if oi < oj:
+                                    h = _carried_history(nb_old, nown_old, hist_old, oi, oj, 1.0)
+                                else:
+                                    h = _carried_history(nb_old, nown_old, hist_old, oj, oi, -1.0)
+                                hist_new[i, cnt, 0] = h[0]
+                                hist_new[i, cnt, 1] = h[1]
+                                hist_new[i, cnt, 2] = h[2]
+                            cnt += 1
+        nown_new[i] = min(cnt, kmax)
+        if cnt > kmax:
+            over = max(over, cnt)
+    return over
+
+
+@njit(cache=True)
+def _build_reverse(n_new, nb, nown, rev_o, rev_k, nrev):
+    """Reverse list: for each particle j, the owners i (ascending) and slots k of the pairs
+    ``nb[i, k] == j`` (serial, deterministic order). Returns the width needed."""
+    krev = rev_o.shape[1]
+    for i in range(n_new):
+        nrev[i] = 0
+    rover = 0
+    for i in range(n_new):
+        for k in range(nown[i]):
+            j = nb[i, k]
+            c = nrev[j]
+            if c < krev:
+                rev_o[j, c] = i
+                rev_k[j, c] = k
+            nrev[j] = c + 1
+            if c + 1 > rover:
+                rover = c + 1
+    return rover
+
+
+@njit(cache=True, parallel=True)
+def _build_tri(
+    n_new, perm, P, cell_of_new, tstart, tcell, tri_x, dom, per, skin,
+    tri_nb_old, ntri_old, thist_old, tri_nb_new, ntri_new, thist_new, kmax,
+):  # fmt: skip
+    """Candidate triangles of each particle (distance < r + skin), history carried over; returns
+    the width needed when ``kmax`` is too small (0 otherwise)."""
+    over = 0
+    for i in prange(n_new):
+        oi = perm[i]
+        x, y, z, r = P[oi, 0], P[oi, 1], P[oi, 2], P[oi, 9]
+        c = cell_of_new[i]
+        cnt = 0
+        for s in range(tstart[c], tstart[c + 1]):
+            q = tcell[s]
+            tri = tri_x[q]
+            qx, qy, qz = tri_periodic_point(x, y, z, tri, dom, per)
+            if dist_point_tri(qx, qy, qz, tri) < r + skin:
+                if cnt < kmax:
+                    tri_nb_new[i, cnt] = q
+                    h = _carried_history(tri_nb_old, ntri_old, thist_old, oi, q, 1.0)
+                    thist_new[i, cnt, 0] = h[0]
+                    thist_new[i, cnt, 1] = h[1]
+                    thist_new[i, cnt, 2] = h[2]
+                cnt += 1
+        ntri_new[i] = min(cnt, kmax)
+        if cnt > kmax:
+            over = max(over, cnt)
+    return over
+
+
+@njit(cache=True)
+def _tri_cell_range(tri_x, q, dom, per, cs, nc, reach, out):
+    """Cell index range (inclusive, unwrapped) of triangle q's box grown by ``reach``."""
+    for a in range(3):
+        vmin = min(tri_x[q, a], tri_x[q, 3 + a], tri_x[q, 6 + a]) - reach
+        vmax = max(tri_x[q, a], tri_x[q, 3 + a], tri_x[q, 6 + a]) + reach
+        c0 = int(math.floor((vmin - dom[a]) / cs[a]))
+        c1 = int(math.floor((vmax - dom[a]) / cs[a]))
+        if per[a] != 0:
+            if c1 - c0 + 1 >= nc[a]:
+                c0 = 0
+                c1 = nc[a] - 1
+        else:
+            c0 = max(c0, 0)
+            c1 = min(c1, nc[a] - 1)
+        out[a, 0] = c0
+        out[a, 1] = c1
+
+
+@njit(cache=True)
+def _bin_triangles(tri_x, dom, per, cs, ncx, ncy, ncz, reach):
+    """CSR map cell -> triangles whose bounding box grown by ``reach`` touches the cell:
+    the triangles of cell c are ``tcell[start[c]:start[c + 1]]``. Returns (start, tcell)."""
+    nt = tri_x.shape[0]
+    ncell = ncx * ncy * ncz
+    nc = np.array([ncx, ncy, ncz])
+    rng = np.zeros((3, 2), np.int64)
+    counts = np.zeros(ncell + 1, np.int64)
+    for q in range(nt):
+        _tri_cell_range(tri_x, q, dom, per, cs, nc, reach, rng)
+        for a in range(rng[0, 0], rng[0, 1] + 1):
+            for b in range(rng[1, 0], rng[1, 1] + 1):
+                for e in range(rng[2, 0], rng[2, 1] + 1):
+                    cell = ((a % ncx) * ncy + (b % ncy)) * ncz + (e % ncz)
+                    counts[cell + 1] += 1
+    for c in range(ncell):
+        counts[c + 1] += counts[c]
+    fill = counts.copy()
+    tcell = np.empty(counts[ncell], np.int64)
+    for q in range(nt):
+        _tri_cell_range(tri_x, q, dom, per, cs, nc, reach, rng)
+        for a in range(rng[0, 0], rng[0, 1] + 1):
+            for b in range(rng[1, 0], rng[1, 1] + 1):
+                for e in range(rng[2, 0], rng[2, 1] + 1):
+                    cell = ((a % ncx) * ncy + (b % ncy)) * ncz + (e % ncz)
+                    tcell[fill[cell]] = q
+                    fill[cell] += 1
+    return counts, tcell
+
+
+@njit(cache=True)
+def _commit(n, n_new, perm, P, F, IA, XB, rm, whist, removed, tri_x, tri_xb):
+    """Count the removed particles (number and mass per removal code), permute the particle
+    rows into the new order, clear the removal flags and record the positions (particles and
+    triangles) of this build for the skin criterion."""
+    for i in range(n):
+        if rm[i] != 0:
+            code = rm[i] - 1
+            removed[code, 0] += 1.0
+            removed[code, 1] += P[i, 10]
+    tmp = P[:n].copy()
+    for i in range(n_new):
+        P[i] = tmp[perm[i]]
+    tmpf = F[:n].copy()
+    for i in range(n_new):
+        F[i] = tmpf[perm[i]]
+    tmpi = IA[:n].copy()
+    for i in range(n_new):
+        IA[i] = tmpi[perm[i]]
+    if whist.shape[1] > 0:
+        tmpw = whist[:n].copy()
+        for i in range(n_new):
+            whist[i] = tmpw[perm[i]]
+    for i in range(n):
+        rm[i] = 0
+    for i in range(n_new):
+        XB[i, 0] = P[i, 0]
+        XB[i, 1] = P[i, 1]
+        XB[i, 2] = P[i, 2]
+    tri_xb[:] = tri_x
+
+
+@njit(cache=True)
+def rebuild(
+    n, P, F, IA, XB, rm, whist,
+    nb_b, hist_b, nown_b, rev_o, rev_k, nrev, cur,
+    tri_nb_b, thist_b, ntri_b, tri_x, tri_xb,
+    dom, per, skin, rmax, removed,
+):  # fmt: skip
+    """Remove flagged particles, sort the rest by cell, rebuild the neighbour and triangle lists
+    (carrying the contact histories) and commit. Returns (status, n_new, needed):
+    status 0 ok, 1 pair list too short (``needed`` slots), 2 reverse list too short,
+    3 triangle list too short. On status != 0 nothing is modified."""
+    ncx, ncy, ncz, cs = _cell_grid(dom, rmax, skin)
+    perm, cell_new, cstart, n_new = _sort_by_cell(n, P, rm, dom, per, cs, ncx, ncy, ncz)
+    old = cur[0]
+    new = 1 - old
+    over = _build_own(
+        n_new, perm, P, cell_new, cstart, ncx, ncy, ncz, dom, per, skin,
+        nb_b[old], nown_b[old], hist_b[old], nb_b[new], nown_b[new], hist_b[new], nb_b.shape[2],
+    )  # fmt: skip
+    if over > 0:
+        return 1, n, over
+    rover = _build_reverse(n_new, nb_b[new], nown_b[new], rev_o, rev_k, nrev)
+    if rover > rev_o.shape[1]:
+        return 2, n, rover
+    if tri_x.shape[0] > 0:
+        start, tcell = _bin_triangles(tri_x, dom, per, cs, ncx, ncy, ncz, rmax + skin)
+        tover = _build_tri(
+            n_new, perm, P, cell_new, start, tcell, tri_x, dom, per, skin,
+            tri_nb_b[old], ntri_b[old], thist_b[old], tri_nb_b[new], ntri_b[new], thist_b[new],
+            tri_nb_b.shape[2],
+        )  # fmt: skip
+        if tover > 0:
+            return 3, n, tover
+    else:
+        ntri_b[new, :n_new] = 0
+    _commit(n, n_new, perm, P, F, IA, XB, rm, whist, removed, tri_x, tri_xb)
+    cur[0] = new
+    return 0, n_new, 0
+
+
+@njit(cache=True)
+def rebuild_due(n, disp2, rm, counters, skin, any_moving, tri_x0, tri_x, tri_xb, tri_mesh,
+                mesh_par, t_new):  # fmt: skip
+    """Verlet skin criterion before the drift to ``t_new``: a rebuild is pending
+    (``counters[0]``), a particle is flagged for removal, the predicted displacement since the
+    last build ``disp2`` exceeds (skin/2)^2, or (moving meshes, placed at ``t_new`` here) the
+    largest triangle displacement plus the largest particle displacement exceeds the skin."""
+    need = counters[0] != 0
+    dmax2 = 0.0
+    for i in range(n):
+        if disp2[i] > dmax2:
+            dmax2 = disp2[i]
+        if rm[i] != 0:
+            need = True
+    if dmax2 > (0.5 * skin) ** 2:
+        need = True
+    if any_moving and tri_x.shape[0] > 0 and not need:
+        update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
+        if math.sqrt(max_tri_disp2(tri_x, tri_xb)) + math.sqrt(dmax2) > skin:
+            need = True
+    return need
