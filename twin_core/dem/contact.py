@@ -30,7 +30,14 @@ import math
 
 from numba import njit
 
-__all__ = ["clear_history", "hertz_energy", "hertz_mindlin", "rolling_torque", "wall_contact"]
+__all__ = [
+    "add_wall_contact",
+    "clear_history",
+    "hertz_energy",
+    "hertz_mindlin",
+    "pair_coefficients",
+    "rolling_torque",
+]
 
 _TWO_THIRDS = 2.0 / 3.0
 
@@ -43,6 +50,19 @@ def clear_history(h, i, k):
         h[i, k, 0] = 0.0
         h[i, k, 1] = 0.0
         h[i, k, 2] = 0.0
+
+
+@njit(cache=True, inline="always")
+def pair_coefficients(pt, mat_a, mat_b):
+    """Coefficients of the material pair (a, b) from the tables ``pt``:
+    (E*, G*, mu_s, mu_r, damping factor d)."""
+    return (
+        pt[0, mat_a, mat_b],
+        pt[1, mat_a, mat_b],
+        pt[2, mat_a, mat_b],
+        pt[3, mat_a, mat_b],
+        pt[4, mat_a, mat_b],
+    )
 
 
 @njit(cache=True, inline="always")
@@ -129,41 +149,41 @@ def hertz_energy(e_star, r_eff, delta):
 
 
 @njit(cache=True)
-def wall_contact(
-    x, y, z, vx, vy, vz, wx, wy, wz, r, m, inv_i, mat_p,
-    nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,
+def add_wall_contact(
+    P, IA, i, nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,
+    fx, fy, fz, tx, ty, tz,
 ):  # fmt: skip
-    """Hertz-Mindlin force and torque on a sphere touching an infinitely massive wall (module
-    docstring, with R* = R, m* = m).
+    """Add to sphere i's force and torque sums (fx .. tz) the Hertz-Mindlin contact with an
+    infinitely massive wall of material ``mat_w`` (module docstring, with R* = R, m* = m; the
+    sphere's state is ``P[i]``, its material ``IA[i, 1]``).
 
     ``n`` points from the sphere centre to the contact; the lever arm is ``r - delta``; the wall
-    moves at ``vw`` at the contact point and rotates at ``ww``. Returns (fx, fy, fz, tx, ty, tz);
-    ``hist`` (3,) is the tangential spring, updated in place.
+    moves at ``vw`` at the contact point and rotates at ``ww``. Returns the new
+    (fx, fy, fz, tx, ty, tz); ``hist`` (3,) is the tangential spring, updated in place.
     """
-    e_star = pt[0, mat_p, mat_w]
-    g_star = pt[1, mat_p, mat_w]
-    mu = pt[2, mat_p, mat_w]
-    mur = pt[3, mat_p, mat_w]
-    dmp = pt[4, mat_p, mat_w]
+    vx, vy, vz = P[i, 3], P[i, 4], P[i, 5]
+    wx, wy, wz = P[i, 6], P[i, 7], P[i, 8]
+    r = P[i, 9]
+    e_star, g_star, mu, mur, dmp = pair_coefficients(pt, IA[i, 1], mat_w)
     c = r - delta
     # contact point velocity of the sphere minus wall velocity
     rvx = vx + c * (wy * nz - wz * ny) - vwx
     rvy = vy + c * (wz * nx - wx * nz) - vwy
     rvz = vz + c * (wx * ny - wy * nx) - vwz
     fn, ftx, fty, ftz, hx, hy, hz = hertz_mindlin(
-        e_star, g_star, mu, dmp, r, m, delta, nx, ny, nz, rvx, rvy, rvz,
+        e_star, g_star, mu, dmp, r, P[i, 10], delta, nx, ny, nz, rvx, rvy, rvz,
         hist[0], hist[1], hist[2], dt,
     )  # fmt: skip
     hist[0] = hx
     hist[1] = hy
     hist[2] = hz
-    fx = -fn * nx + ftx
-    fy = -fn * ny + fty
-    fz = -fn * nz + ftz
-    # torque of the tangential force: (c n) x ft
-    tx = c * (ny * ftz - nz * fty)
-    ty = c * (nz * ftx - nx * ftz)
-    tz = c * (nx * fty - ny * ftx)
-    # rolling friction (constant directional torque)
-    trx, try_, trz = rolling_torque(mur, fn, r, wx - wwx, wy - wwy, wz - wwz, dt * inv_i)
-    return fx, fy, fz, tx + trx, ty + try_, tz + trz
+    # torque of the tangential force, (c n) x ft, plus the rolling torque
+    trx, try_, trz = rolling_torque(mur, fn, r, wx - wwx, wy - wwy, wz - wwz, dt * P[i, 12])
+    return (
+        fx + (-fn * nx + ftx),
+        fy + (-fn * ny + fty),
+        fz + (-fn * nz + ftz),
+        tx + (c * (ny * ftz - nz * fty) + trx),
+        ty + (c * (nz * ftx - nx * ftz) + try_),
+        tz + (c * (nx * fty - ny * ftx) + trz),
+    )

@@ -15,9 +15,7 @@ sequential addition and its jamming limit).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 from numba import njit
@@ -28,7 +26,6 @@ from .space import min_image
 __all__ = [
     "BoxRegion",
     "CylinderRegion",
-    "InsertionTarget",
     "ParticleFactory",
     "rsa_place",
     "sample_radii",
@@ -211,26 +208,6 @@ def rsa_place(ex_pos, ex_r, cand, cand_r, n_want, dom, per, cs):
     return acc[:placed]
 
 
-class InsertionTarget(Protocol):
-    """What a :class:`ParticleFactory` inserts into (a :class:`~twin_core.dem.Simulation`)."""
-
-    @property
-    def t(self) -> float: ...
-
-    def insert_particles(
-        self,
-        n: int,
-        region: BoxRegion | CylinderRegion,
-        radius: float | tuple[float, float],
-        material_id: int = 0,
-        type_id: int = 0,
-        vel: Sequence[float] | None = None,
-        seed: int | np.random.Generator | None = None,
-        max_attempts: int = 200,
-        strict: bool = True,
-    ) -> np.ndarray: ...
-
-
 @dataclass
 class ParticleFactory:
     """Insert ``n_total`` particles into ``region`` at ``rate`` particles/s (seeded).
@@ -238,7 +215,8 @@ class ParticleFactory:
     Every ``interval`` seconds from ``t_start`` the factory places the particles due by then
     (``rate * elapsed``, minus those already placed) by random sequential addition; particles that do
     not fit are retried at the next interval. ``rate=None`` inserts all at ``t_start``.
-    Register with :meth:`Simulation.add_factory`.
+    Register with :meth:`Simulation.add_factory`: the factory says how many particles are due
+    (:meth:`take_due`), the simulation places them (so this module does not import it).
     """
 
     region: BoxRegion | CylinderRegion
@@ -294,25 +272,19 @@ class ParticleFactory:
             return self.n_total
         return min(self.n_total, int(math.floor(self.rate * (t - self.t_start + self.interval))))
 
-    def insert(self, sim: InsertionTarget) -> np.ndarray:
-        """Place the particles due at ``sim.t``; returns their ids."""
-        want = self.due(sim.t) - self.n_inserted
-        k = max(math.floor((sim.t - self.t_start) / self.interval + 1e-9), -1) + 1
+    @property
+    def rng(self) -> np.random.Generator:
+        """The factory's random generator (radii and positions of its particles)."""
+        return self._rng  # type: ignore[return-value]
+
+    def take_due(self, t: float) -> int:
+        """Number of particles to place at simulated time t (due by then minus those placed,
+        at least 0); schedules the next insertion. The simulation places them and adds what fit
+        to :attr:`n_inserted`."""
+        want = self.due(t) - self.n_inserted
+        k = max(math.floor((t - self.t_start) / self.interval + 1e-9), -1) + 1
         self._next_t = self.t_start + k * self.interval
-        if want <= 0:
-            return np.zeros(0, np.int64)
-        ids = sim.insert_particles(
-            want,
-            self.region,
-            self.radius,
-            self.material_id,
-            self.type_id,
-            vel=self.velocity,
-            seed=self._rng,
-            strict=False,
-        )
-        self.n_inserted += ids.size
-        return ids
+        return max(want, 0)
 
     def to_dict(self) -> dict:
         """JSON-able state (including the generator state)."""

@@ -163,6 +163,26 @@ def gather_pass(
 
 
 @njit(cache=True)
+def _forces_and_kick(
+    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, c,
+    tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
+    planes, cyls, pt, dom, per, grav, dt, t, serial, predict_next, XB, rm, sinks, disp2,
+):  # fmt: skip
+    """Forces at time t on the live lists ``c`` and the second half kick: the pair forces by the
+    serial scatter (``serial``) or pass 1, then pass 2 (:func:`gather_pass`)."""
+    if serial:
+        pair_scatter(n, P, IA, nb_b[c], nown_b[c], hist_b[c], acc, pt, dom, per, dt)
+    else:
+        pair_pass(n, P, F, IA, nb_b[c], nown_b[c], hist_b[c], pf, pt, dom, per, dt)
+    gather_pass(
+        n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc,
+        planes, cyls, whist,
+        ntri_b[c], tri_nb_b[c], thist_b[c], tri_tmp, tri_x, tri_mesh, mesh_par,
+        pt, dom, per, grav, dt, t, predict_next, XB, rm, sinks, disp2,
+    )  # fmt: skip
+
+
+@njit(cache=True)
 def advance(
     nsteps, step0, dt, n, P, F, IA, XB, rm, disp2, whist,
     nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, cur,
@@ -201,16 +221,10 @@ def advance(
             if meshes_move:
                 update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
         kick_drift(n, P, F, dom, per, dt)
-        c = cur[0]
-        if serial:
-            pair_scatter(n, P, IA, nb_b[c], nown_b[c], hist_b[c], acc, pt, dom, per, dt)
-        else:
-            pair_pass(n, P, F, IA, nb_b[c], nown_b[c], hist_b[c], pf, pt, dom, per, dt)
-        gather_pass(
-            n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc,
-            planes, cyls, whist,
-            ntri_b[c], tri_nb_b[c], thist_b[c], tri_tmp, tri_x, tri_mesh, mesh_par,
-            pt, dom, per, grav, dt, t_new, True, XB, rm, sinks, disp2,
+        _forces_and_kick(
+            n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, cur[0],
+            tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
+            planes, cyls, pt, dom, per, grav, dt, t_new, serial, True, XB, rm, sinks, disp2,
         )  # fmt: skip
     return 0, nsteps, n
 
@@ -230,16 +244,11 @@ def compute_forces(
     th = thist_b[c].copy()
     wh = whist.copy()
     v = P[:n, 3:9].copy()
-    if serial:
-        pair_scatter(n, P, IA, nb_b[c], nown_b[c], hist_b[c], acc, pt, dom, per, dt)
-    else:
-        pair_pass(n, P, F, IA, nb_b[c], nown_b[c], hist_b[c], pf, pt, dom, per, dt)
-    gather_pass(
-        n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc,
-        planes, cyls, whist,
-        ntri_b[c], tri_nb_b[c], thist_b[c], tri_tmp, tri_x, tri_mesh, mesh_par,
-        pt, dom, per, grav, dt, t, False, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 6)),
-        np.zeros(0),
+    _forces_and_kick(
+        n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, c,
+        tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
+        planes, cyls, pt, dom, per, grav, dt, t, serial,
+        False, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 6)), np.zeros(0),
     )  # fmt: skip
     hist_b[c][:] = h
     thist_b[c][:] = th

@@ -26,7 +26,7 @@ import math
 
 from numba import njit, prange
 
-from .contact import clear_history, wall_contact
+from .contact import add_wall_contact, clear_history
 from .space import min_image
 
 __all__ = [
@@ -262,10 +262,11 @@ def _wall_motion(mesh_par, mesh, t, cpx, cpy, cpz):
 
 
 @njit(cache=True)
-def _triangle_contact(i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt,
-                      dom, per, dt, t):  # fmt: skip
-    """Force and torque (6) on particle i of its accepted contact with candidate triangle k
-    (contact point and distance from ``tri_tmp``); updates the history ``thist[i, k]``."""
+def _add_triangle_contact(i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt,
+                          dom, per, dt, t, fx, fy, fz, tx, ty, tz):  # fmt: skip
+    """Add to particle i's force and torque (fx .. tz) its accepted contact with candidate
+    triangle k (contact point and distance from ``tri_tmp``); updates the history
+    ``thist[i, k]``. Returns the new (fx, fy, fz, tx, ty, tz)."""
     cpx, cpy, cpz = tri_tmp[i, k, 0], tri_tmp[i, k, 1], tri_tmp[i, k, 2]
     q = tri_nb[i, k]
     mesh = tri_mesh[q]
@@ -275,11 +276,9 @@ def _triangle_contact(i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_par, t
     ny = (cpy - qy) / dist
     nz = (cpz - qz) / dist
     vwx, vwy, vwz, wwx, wwy, wwz = _wall_motion(mesh_par, mesh, t, cpx, cpy, cpz)
-    return wall_contact(
-        P[i, 0], P[i, 1], P[i, 2], P[i, 3], P[i, 4], P[i, 5], P[i, 6], P[i, 7], P[i, 8],
-        P[i, 9], P[i, 10], P[i, 12], IA[i, 1],
-        nx, ny, nz, P[i, 9] - dist, vwx, vwy, vwz, wwx, wwy, wwz,
-        int(mesh_par[mesh, 15]), pt, thist[i, k], dt,
+    return add_wall_contact(
+        P, IA, i, nx, ny, nz, P[i, 9] - dist, vwx, vwy, vwz, wwx, wwy, wwz,
+        int(mesh_par[mesh, 15]), pt, thist[i, k], dt, fx, fy, fz, tx, ty, tz,
     )  # fmt: skip
 
 
@@ -313,13 +312,8 @@ def add_mesh_contacts(
                 tri_tmp[i, k, 4] = -1.0
                 continue
             tri_tmp[i, k, 4] = 10.0 + feat_pass
-            a, b, c, d, e, f = _triangle_contact(
-                i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt, dom, per, dt, t
-            )
-            fx += a
-            fy += b
-            fz += c
-            tx += d
-            ty += e
-            tz += f
+            fx, fy, fz, tx, ty, tz = _add_triangle_contact(
+                i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt, dom, per, dt, t,
+                fx, fy, fz, tx, ty, tz,
+            )  # fmt: skip
     return fx, fy, fz, tx, ty, tz

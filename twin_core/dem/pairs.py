@@ -29,7 +29,13 @@ import math
 
 from numba import njit, prange
 
-from .contact import clear_history, hertz_energy, hertz_mindlin, rolling_torque
+from .contact import (
+    clear_history,
+    hertz_energy,
+    hertz_mindlin,
+    pair_coefficients,
+    rolling_torque,
+)
 from .space import min_image
 
 __all__ = ["add_pair_energy", "gather_pair_slots", "pair_pass", "pair_scatter"]
@@ -43,13 +49,7 @@ def _pair_contact(P, IA, hist, pt, i, k, j, dx, dy, dz, d2, rs, dt):
     ri = P[i, 9]
     rj = P[j, 9]
     mi = P[i, 10]
-    mati = IA[i, 1]
-    matj = IA[j, 1]
-    e_star = pt[0, mati, matj]
-    g_star = pt[1, mati, matj]
-    mu = pt[2, mati, matj]
-    mur = pt[3, mati, matj]
-    dmp = pt[4, mati, matj]
+    e_star, g_star, mu, mur, dmp = pair_coefficients(pt, IA[i, 1], IA[j, 1])
     d = math.sqrt(d2)
     inv_d = 1.0 / d
     nx, ny, nz = dx * inv_d, dy * inv_d, dz * inv_d

@@ -115,17 +115,22 @@ def _sort_by_cell(n, P, rm, dom, per, cs, ncx, ncy, ncz):
 
 
 @njit(cache=True)
-def _carried_history(nb_old, n_old, hist_old, row, partner, sign):
-    """The tangential spring of the old list's slot (row, partner) times ``sign`` (zero when the
-    pair was not listed)."""
+def _append_carried(nb_new, hist_new, i, cnt, partner, nb_old, n_old, hist_old, row, key, sign):
+    """List ``partner`` in slot (i, cnt) of the new list with the tangential spring of the old
+    list's slot (row, key) times ``sign`` (zero when that pair was not listed)."""
+    nb_new[i, cnt] = partner
+    h0 = 0.0
+    h1 = 0.0
+    h2 = 0.0
     for kk in range(n_old[row]):
-        if nb_old[row, kk] == partner:
-            return (
-                sign * hist_old[row, kk, 0],
-                sign * hist_old[row, kk, 1],
-                sign * hist_old[row, kk, 2],
-            )
-    return 0.0, 0.0, 0.0
+        if nb_old[row, kk] == key:
+            h0 = sign * hist_old[row, kk, 0]
+            h1 = sign * hist_old[row, kk, 1]
+            h2 = sign * hist_old[row, kk, 2]
+            break
+    hist_new[i, cnt, 0] = h0
+    hist_new[i, cnt, 1] = h1
+    hist_new[i, cnt, 2] = h2
 
 
 @njit(cache=True, parallel=True)
@@ -163,14 +168,10 @@ def _build_own(
                         cut = ri + P[oj, 9] + skin
                         if dx * dx + dy * dy + dz * dz < cut * cut:
                             if cnt < kmax:
-                                nb_new[i, cnt] = j
-                                if oi < oj:
-                                    h = _carried_history(nb_old, nown_old, hist_old, oi, oj, 1.0)
-                                else:
-                                    h = _carried_history(nb_old, nown_old, hist_old, oj, oi, -1.0)
-                                hist_new[i, cnt, 0] = h[0]
-                                hist_new[i, cnt, 1] = h[1]
-                                hist_new[i, cnt, 2] = h[2]
+                                # where the owner changed, the spring changes sign
+                                row, key, sign = (oi, oj, 1.0) if oi < oj else (oj, oi, -1.0)
+                                _append_carried(nb_new, hist_new, i, cnt, j, nb_old, nown_old,
+                                                hist_old, row, key, sign)  # fmt: skip
                             cnt += 1
         nown_new[i] = min(cnt, kmax)
         if cnt > kmax:
@@ -218,11 +219,8 @@ def _build_tri(
             qx, qy, qz = tri_periodic_point(x, y, z, tri, dom, per)
             if dist_point_tri(qx, qy, qz, tri) < r + skin:
                 if cnt < kmax:
-                    tri_nb_new[i, cnt] = q
-                    h = _carried_history(tri_nb_old, ntri_old, thist_old, oi, q, 1.0)
-                    thist_new[i, cnt, 0] = h[0]
-                    thist_new[i, cnt, 1] = h[1]
-                    thist_new[i, cnt, 2] = h[2]
+                    _append_carried(tri_nb_new, thist_new, i, cnt, q, tri_nb_old, ntri_old,
+                                    thist_old, oi, q, 1.0)  # fmt: skip
                 cnt += 1
         ntri_new[i] = min(cnt, kmax)
         if cnt > kmax:

@@ -852,7 +852,13 @@ class Simulation:
     def _insert_due(self) -> None:
         for f in self._factories:
             while not f.done and f.next_time() <= self.t + 1e-12:
-                f.insert(self)
+                want = f.take_due(self.t)
+                if want:
+                    ids = self.insert_particles(
+                        want, f.region, f.radius, f.material_id, f.type_id, vel=f.velocity,
+                        seed=f.rng, strict=False,
+                    )  # fmt: skip
+                    f.n_inserted += ids.size
 
     # ----------------------------------------------------------------------------------------
     # checkpoints

@@ -24,7 +24,7 @@ import math
 
 from numba import njit
 
-from .contact import clear_history, hertz_energy, wall_contact
+from .contact import add_wall_contact, clear_history, hertz_energy
 
 __all__ = [
     "add_cylinder_contacts",
@@ -50,17 +50,11 @@ def add_plane_contacts(i, P, IA, planes, whist, pt, dt, fx, fy, fz, tx, ty, tz):
         if delta <= 0.0 or dist < -ri:
             clear_history(whist, i, w)
             continue
-        a, b, c, d, e, f = wall_contact(
-            x, y, z, P[i, 3], P[i, 4], P[i, 5], P[i, 6], P[i, 7], P[i, 8], ri, P[i, 10],
-            P[i, 12], IA[i, 1], -planes[w, 3], -planes[w, 4], -planes[w, 5], delta,
+        fx, fy, fz, tx, ty, tz = add_wall_contact(
+            P, IA, i, -planes[w, 3], -planes[w, 4], -planes[w, 5], delta,
             0.0, 0.0, 0.0, 0.0, 0.0, 0.0, int(planes[w, 6]), pt, whist[i, w], dt,
+            fx, fy, fz, tx, ty, tz,
         )  # fmt: skip
-        fx += a
-        fy += b
-        fz += c
-        tx += d
-        ty += e
-        tz += f
     return fx, fy, fz, tx, ty, tz
 
 
@@ -99,17 +93,10 @@ def add_cylinder_contacts(i, P, IA, cyls, npl, whist, pt, dt, fx, fy, fz, tx, ty
         vwx = om * (uy * cpz - uz * cpy)
         vwy = om * (uz * cpx - ux * cpz)
         vwz = om * (ux * cpy - uy * cpx)
-        a, b, c, d, e, f = wall_contact(
-            x, y, z, P[i, 3], P[i, 4], P[i, 5], P[i, 6], P[i, 7], P[i, 8], ri, P[i, 10],
-            P[i, 12], IA[i, 1], nx, ny, nz, delta, vwx, vwy, vwz, om * ux, om * uy, om * uz,
-            int(cyls[w, 9]), pt, whist[i, hw], dt,
+        fx, fy, fz, tx, ty, tz = add_wall_contact(
+            P, IA, i, nx, ny, nz, delta, vwx, vwy, vwz, om * ux, om * uy, om * uz,
+            int(cyls[w, 9]), pt, whist[i, hw], dt, fx, fy, fz, tx, ty, tz,
         )  # fmt: skip
-        fx += a
-        fy += b
-        fz += c
-        tx += d
-        ty += e
-        tz += f
     return fx, fy, fz, tx, ty, tz
 
 
