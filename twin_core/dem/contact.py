@@ -148,7 +148,7 @@ def hertz_energy(e_star, r_eff, delta):
     return 8.0 / 15.0 * e_star * math.sqrt(r_eff) * delta**2.5
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def add_wall_contact(
     P, IA, i, nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,
     fx, fy, fz, tx, ty, tz,

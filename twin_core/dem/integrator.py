@@ -99,7 +99,7 @@ def predict(n, P, F, XB, rm, dom, per, sinks, dt, disp2):
         _predict_one(i, P, F, XB, rm, dom, per, sinks, dt, disp2)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _store_and_kick(i, P, F, grav, dt, fx, fy, fz, tx, ty, tz):
     """Add gravity ``m g`` to particle i's force, store force and torque in ``F[i]`` and apply
     the second half kick ``v += F/m dt/2; w += T/I dt/2``."""

@@ -189,7 +189,7 @@ def max_tri_disp2(tri_x, tri_xb):
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tmp, dom, per, t):
     """First sweep over the candidate triangles of particle i: closest point (cx, cy, cz),
     distance and feature of each triangle of an active mesh that the sphere overlaps, stored in
@@ -221,7 +221,7 @@ def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tm
     return ncont
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _shadowing_contact(i, k, nt, tol, tri_tmp, tri_nb, tri_x):
     """The accepted contact (``tri_tmp`` feature 10 + f) that shadows the edge/vertex contact k
     of particle i: same contact point within ``tol``, or k's contact point lies on a triangle
@@ -242,7 +242,7 @@ def _shadowing_contact(i, k, nt, tol, tri_tmp, tri_nb, tri_x):
     return -1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _wall_motion(mesh_par, mesh, t, cpx, cpy, cpz):
     """Velocity of mesh ``mesh`` at the contact point c at time t and its angular velocity:
     ``omega u x (c - a)`` and ``omega u`` for a rotation, the translation velocity otherwise."""
@@ -261,7 +261,7 @@ def _wall_motion(mesh_par, mesh, t, cpx, cpy, cpz):
     return vwx, vwy, vwz, wwx, wwy, wwz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _add_triangle_contact(i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt,
                           dom, per, dt, t, fx, fy, fz, tx, ty, tz):  # fmt: skip
     """Add to particle i's force and torque (fx .. tz) its accepted contact with candidate
@@ -282,7 +282,7 @@ def _add_triangle_contact(i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_pa
     )  # fmt: skip
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def add_mesh_contacts(
     i, P, IA, ntri, tri_nb, thist, tri_tmp, tri_x, tri_mesh, mesh_par, pt, dom, per, dt, t,
     fx, fy, fz, tx, ty, tz,

@@ -114,7 +114,7 @@ def _sort_by_cell(n, P, rm, dom, per, cs, ncx, ncy, ncz):
     return perm, cell_new, cstart, n_new
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _append_carried(nb_new, hist_new, i, cnt, partner, nb_old, n_old, hist_old, row, key, sign):
     """List ``partner`` in slot (i, cnt) of the new list with the tangential spring of the old
     list's slot (row, key) times ``sign`` (zero when that pair was not listed)."""

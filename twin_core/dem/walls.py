@@ -34,7 +34,7 @@ __all__ = [
 ]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def add_plane_contacts(i, P, IA, planes, whist, pt, dt, fx, fy, fz, tx, ty, tz):
     """Add to particle i's force and torque (fx .. tz) its contacts with the planes, in table
     order; update their histories. Returns the new (fx, fy, fz, tx, ty, tz)."""
@@ -58,7 +58,7 @@ def add_plane_contacts(i, P, IA, planes, whist, pt, dt, fx, fy, fz, tx, ty, tz):
     return fx, fy, fz, tx, ty, tz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def add_cylinder_contacts(i, P, IA, cyls, npl, whist, pt, dt, fx, fy, fz, tx, ty, tz):
     """Add to particle i's force and torque (fx .. tz) its contacts with the cylinders, in table
     order (histories in ``whist[i, npl + w]``). Returns the new (fx, fy, fz, tx, ty, tz)."""
