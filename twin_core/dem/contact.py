@@ -37,6 +37,7 @@ __all__ = [
     "hertz_mindlin",
     "pair_coefficients",
     "rolling_torque",
+    "wall_contact",
 ]
 
 _TWO_THIRDS = 2.0 / 3.0
@@ -148,42 +149,51 @@ def hertz_energy(e_star, r_eff, delta):
     return 8.0 / 15.0 * e_star * math.sqrt(r_eff) * delta**2.5
 
 
-@njit(cache=True, inline="always")
-def add_wall_contact(
-    P, IA, i, nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,
-    fx, fy, fz, tx, ty, tz,
+@njit(cache=True)
+def wall_contact(
+    vx, vy, vz, wx, wy, wz, r, m, inv_i, mat_p,
+    nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,
 ):  # fmt: skip
-    """Add to sphere i's force and torque sums (fx .. tz) the Hertz-Mindlin contact with an
-    infinitely massive wall of material ``mat_w`` (module docstring, with R* = R, m* = m; the
-    sphere's state is ``P[i]``, its material ``IA[i, 1]``).
+    """Hertz-Mindlin force and torque on a sphere (velocity v, angular velocity w, radius r,
+    mass m, inverse inertia, material ``mat_p``) touching an infinitely massive wall of material
+    ``mat_w`` (module docstring, with R* = R, m* = m).
 
     ``n`` points from the sphere centre to the contact; the lever arm is ``r - delta``; the wall
-    moves at ``vw`` at the contact point and rotates at ``ww``. Returns the new
-    (fx, fy, fz, tx, ty, tz); ``hist`` (3,) is the tangential spring, updated in place.
+    moves at ``vw`` at the contact point and rotates at ``ww``. Returns (fx, fy, fz, tx, ty, tz);
+    ``hist`` (3,) is the tangential spring, updated in place. Compiled once and called by the
+    plane, cylinder and mesh loops (not inlined: it is the largest piece of their code).
     """
-    vx, vy, vz = P[i, 3], P[i, 4], P[i, 5]
-    wx, wy, wz = P[i, 6], P[i, 7], P[i, 8]
-    r = P[i, 9]
-    e_star, g_star, mu, mur, dmp = pair_coefficients(pt, IA[i, 1], mat_w)
+    e_star, g_star, mu, mur, dmp = pair_coefficients(pt, mat_p, mat_w)
     c = r - delta
     # contact point velocity of the sphere minus wall velocity
     rvx = vx + c * (wy * nz - wz * ny) - vwx
     rvy = vy + c * (wz * nx - wx * nz) - vwy
     rvz = vz + c * (wx * ny - wy * nx) - vwz
     fn, ftx, fty, ftz, hx, hy, hz = hertz_mindlin(
-        e_star, g_star, mu, dmp, r, P[i, 10], delta, nx, ny, nz, rvx, rvy, rvz,
+        e_star, g_star, mu, dmp, r, m, delta, nx, ny, nz, rvx, rvy, rvz,
         hist[0], hist[1], hist[2], dt,
     )  # fmt: skip
     hist[0] = hx
     hist[1] = hy
     hist[2] = hz
-    # torque of the tangential force, (c n) x ft, plus the rolling torque
-    trx, try_, trz = rolling_torque(mur, fn, r, wx - wwx, wy - wwy, wz - wwz, dt * P[i, 12])
-    return (
-        fx + (-fn * nx + ftx),
-        fy + (-fn * ny + fty),
-        fz + (-fn * nz + ftz),
-        tx + (c * (ny * ftz - nz * fty) + trx),
-        ty + (c * (nz * ftx - nx * ftz) + try_),
-        tz + (c * (nx * fty - ny * ftx) + trz),
-    )
+    # torque of the tangential force: (c n) x ft
+    tx = c * (ny * ftz - nz * fty)
+    ty = c * (nz * ftx - nx * ftz)
+    tz = c * (nx * fty - ny * ftx)
+    # rolling friction (constant directional torque)
+    trx, try_, trz = rolling_torque(mur, fn, r, wx - wwx, wy - wwy, wz - wwz, dt * inv_i)
+    return -fn * nx + ftx, -fn * ny + fty, -fn * nz + ftz, tx + trx, ty + try_, tz + trz
+
+
+@njit(cache=True, inline="always")
+def add_wall_contact(
+    P, IA, i, nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,
+    fx, fy, fz, tx, ty, tz,
+):  # fmt: skip
+    """Add to sphere i's force and torque sums (fx .. tz) its :func:`wall_contact` (state row
+    ``P[i]``, material ``IA[i, 1]``). Returns the new (fx, fy, fz, tx, ty, tz)."""
+    a, b, c, d, e, f = wall_contact(
+        P[i, 3], P[i, 4], P[i, 5], P[i, 6], P[i, 7], P[i, 8], P[i, 9], P[i, 10], P[i, 12],
+        IA[i, 1], nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,
+    )  # fmt: skip
+    return fx + a, fy + b, fz + c, tx + d, ty + e, tz + f

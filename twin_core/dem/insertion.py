@@ -133,7 +133,7 @@ def sample_radii(
     return lo + (hi - lo) * rng.random(size)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _push(cell, m, x, y, z, r, pos, rad, head, nxt):
     """Store sphere m (centre, radius) and link it at the head of its cell's chain."""
     pos[m, 0] = x
@@ -144,7 +144,7 @@ def _push(cell, m, x, y, z, r, pos, rad, head, nxt):
     head[cell] = m
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _overlaps_stored(x, y, z, r, cx, cy, cz, nc, head, nxt, pos, rad, dom, per, cxs, cys, czs):
     """Whether the sphere (x, y, z, r) in cell (cx, cy, cz) of the ``nc`` grid overlaps a sphere
     stored in its own or a neighbouring cell (minimum image on periodic axes)."""

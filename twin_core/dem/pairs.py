@@ -234,7 +234,7 @@ def gather_pair_slots(i, ri, pf, nrev, rev_o, rev_k, nown):
     return fx, fy, fz, tx, ty, tz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def add_pair_energy(en, i, P, IA, nb, nown, pt, dom, per):
     """``en`` plus the Hertz energy of particle i's overlaps with the particles it owns in the
     half list (each pair counted once)."""

@@ -69,7 +69,7 @@ def cell_of(x, lo, cs, ncell, periodic):
     return c
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cell_grid(dom, rmax, skin):
     """Cells per axis (at least one, of size >= ``2 r_max + skin``) and their sizes (3,)."""
     cs_min = 2.0 * rmax + skin
@@ -80,7 +80,7 @@ def _cell_grid(dom, rmax, skin):
     return ncx, ncy, ncz, cs
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _sort_by_cell(n, P, rm, dom, per, cs, ncx, ncy, ncz):
     """Counting sort of the particles by cell, flagged ones (``rm != 0``) last and dropped.
 
@@ -179,7 +179,7 @@ def _build_own(
     return over
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _build_reverse(n_new, nb, nown, rev_o, rev_k, nrev):
     """Reverse list: for each particle j, the owners i (ascending) and slots k of the pairs
     ``nb[i, k] == j`` (serial, deterministic order). Returns the width needed."""
@@ -278,7 +278,7 @@ def _bin_triangles(tri_x, dom, per, cs, ncx, ncy, ncz, reach):
     return counts, tcell
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _commit(n, n_new, perm, P, F, IA, XB, rm, whist, removed, tri_x, tri_xb):
     """Count the removed particles (number and mass per removal code), permute the particle
     rows into the new order, clear the removal flags and record the positions (particles and
@@ -350,7 +350,7 @@ def rebuild(
     return 0, n_new, 0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def rebuild_due(n, disp2, rm, counters, skin, any_moving, tri_x0, tri_x, tri_xb, tri_mesh,
                 mesh_par, t_new):  # fmt: skip
     """Verlet skin criterion before the drift to ``t_new``: a rebuild is pending

@@ -100,7 +100,7 @@ def add_cylinder_contacts(i, P, IA, cyls, npl, whist, pt, dt, fx, fy, fz, tx, ty
     return fx, fy, fz, tx, ty, tz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def add_plane_energy(en, i, P, IA, planes, pt):
     """``en`` plus the Hertz energy of particle i's overlaps with the planes (R* = R)."""
     ri = P[i, 9]
@@ -115,7 +115,7 @@ def add_plane_energy(en, i, P, IA, planes, pt):
     return en
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def add_cylinder_energy(en, i, P, IA, cyls, pt):
     """``en`` plus the Hertz energy of particle i's overlaps with the cylinders within their
     axial range (R* = R)."""
