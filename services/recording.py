@@ -441,6 +441,7 @@ def replay(
     loop: bool = False,
     max_passes: int | None = None,
     should_stop: Callable[[], bool] | None = None,
+    hold: Callable[[float], None] | None = None,
 ) -> ReplayStats:
     """Publish the messages of a recording with their plant-time spacing divided by ``speed``.
 
@@ -450,6 +451,9 @@ def replay(
     ``t`` by ``k * (span + dt)`` (dt: the smallest positive gap between successive messages, or
     1 s) and ``seq`` by ``k * (max seq + 1)`` per key, re-encoding the payload, so that plant time
     and sequence numbers keep increasing. ``should_stop()`` is polled between messages.
+    ``hold(t)`` is called with each message's plant time (s) before it is sent and may block: a
+    virtual plant paced by the twin (wait until a service has reacted before going on); the
+    time spent in it shifts the rest of the schedule, so the replay resumes at ``speed``.
     """
     if not as_fast_as_possible and (not math.isfinite(speed) or speed <= 0):
         raise ValueError(f"speed must be a finite number > 0, got {speed!r}")
@@ -472,6 +476,10 @@ def replay(
             if should_stop is not None and should_stop():
                 stats.stopped = True
                 break
+            if hold is not None:
+                held_from = time.perf_counter()
+                hold((m.log_time_ns + shift_ns) / NS)
+                wall0 += time.perf_counter() - held_from
             if not as_fast_as_possible:
                 due = (m.log_time_ns - t0 + shift_ns) / NS / speed
                 now = time.perf_counter() - wall0
@@ -804,8 +812,10 @@ class BusReplay:
         as_fast_as_possible: bool = False,
         loop: bool = False,
         max_passes: int | None = None,
+        hold: Callable[[float], None] | None = None,
     ) -> ReplayStats:
-        """Publish the recording (:func:`replay`); with a line spec, then the end of stream."""
+        """Publish the recording (:func:`replay`, ``hold`` included); with a line spec, then the
+        end of stream."""
         stats = replay(
             self.rec,
             self._publish,
@@ -814,6 +824,7 @@ class BusReplay:
             loop=loop,
             max_passes=max_passes,
             should_stop=self.svc.stop_flag.is_set,
+            hold=hold,
         )
         if self.spec is not None:
             from schemas.messages import END_OF_STREAM, Event
