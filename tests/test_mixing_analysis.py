@@ -12,7 +12,7 @@ import pytest
 from twin_core.dem.frames import Frame, FrameWriter
 from twin_core.mixing import GridSpec, MixingConfig
 from twin_core.mixing.analysis import analyze, t95_by_speed
-from twin_core.mixing.plots import plot_analysis, plot_t95_by_speed
+from twin_core.mixing.plots import analysis_figure, plot_analysis, plot_t95_by_speed
 
 R = 1e-3
 
@@ -63,6 +63,15 @@ def test_lacey_progress_rate_matches_swap_rate(analyses):
     fit = analyses[100].fits["LI"]
     assert fit.gamma == pytest.approx(2 * 0.6, rel=0.15)
     assert fit.r2 > 0.9
+
+
+def test_progress_axis_says_what_one_means(analyses):
+    """The default curves are normalised to their own plateau, not to a random mixture."""
+    import matplotlib.pyplot as plt
+
+    fig = analysis_figure(analyses[100])
+    assert fig.get_supylabel() == "mixing progress (0 initial, 1 own plateau)"
+    plt.close(fig)
 
 
 def test_figures_written(analyses, tmp_path):

@@ -39,6 +39,7 @@ class MixingAnalysis:
     fits: dict[str, T95Fit]
     progress_random: pd.DataFrame | None = None
     final_vs_random: dict[str, float] | None = None
+    normalize: str = "plateau"
 
     def t95_table(self) -> pd.DataFrame:
         rows = [
@@ -99,7 +100,7 @@ def analyze(
             fits[name] = fit_t95(prog["t"].to_numpy(), y, model, smooth_window)
         except (RuntimeError, ValueError):
             continue  # reported as missing in the table rather than guessed
-    return MixingAnalysis(df, prog, fits, prog_random, final)
+    return MixingAnalysis(df, prog, fits, prog_random, final, normalize)
 
 
 def t95_by_speed(analyses: Mapping[float, MixingAnalysis]) -> pd.DataFrame:

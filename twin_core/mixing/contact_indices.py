@@ -55,8 +55,8 @@ def particle_scale_index(pairs: np.ndarray, types: np.ndarray, tracer: int) -> f
     ``PS = (S0^2 - St^2) / (S0^2 - Sr^2)``, ``St^2 = var(p_i)``, ``S0^2 = p (1 - p)``,
     ``Sr^2 = p (1 - p) / (C_n + 1)`` with ``C_n`` the mean coordination number.
     0 segregated, ~1 random.
-    Reference: Chandratilleke et al., Powder Technol. 226 (2012) (particle-scale index). The
-    seed's Eq. (21) counts only differently coloured neighbours, which is not a fraction of a
+    Reference: Chandratilleke, Yu, Bridgwater & Shinohara, "A particle-scale index in the
+    quantification of mixing of particles", AIChE J. 58 (2012) 1099-1118. The seed's Eq. (21) counts only differently coloured neighbours, which is not a fraction of a
     sample; the original local-composition definition is used.
     """
     types = np.asarray(types)

@@ -15,11 +15,23 @@ from twin_core.mixing.analysis import MixingAnalysis
 from twin_core.mixing.series import INDEX_NAMES
 from twin_core.mixing.t95 import exponential_model, oscillating_model, smooth
 
-__all__ = ["plot_analysis", "plot_t95_by_speed"]
+__all__ = ["analysis_figure", "plot_analysis", "plot_t95_by_speed"]
+
+#: what 1 means on the progress axis, by the normalisation of :func:`~twin_core.mixing.analysis.analyze`
+PROGRESS_LABEL = {
+    "plateau": "mixing progress (0 initial, 1 own plateau)",
+    "random": "mixing progress (0 initial, 1 random mixture)",
+}
 
 
 def plot_analysis(an: MixingAnalysis, path: str | Path, smooth_window: int = 11) -> Path:
-    """Figure 4.6-like panel: each index's progress, its smoothed curve and the fit."""
+    """Write :func:`analysis_figure` to ``path``."""
+    return _save(analysis_figure(an, smooth_window), path)
+
+
+def analysis_figure(an: MixingAnalysis, smooth_window: int = 11):
+    """Figure 4.6-like panel: each index's progress, its smoothed curve and the fit; the y label
+    says what 1 means (the run's own plateau or a random mixture, ``an.normalize``)."""
     import matplotlib.pyplot as plt
 
     names = [c for c in an.progress.columns if c in INDEX_NAMES]
@@ -51,12 +63,9 @@ def plot_analysis(an: MixingAnalysis, path: str | Path, smooth_window: int = 11)
         ax.axis("off")
     axes[0, 0].legend(fontsize=6)
     fig.supxlabel("time (s)")
-    fig.supylabel("mixing progress (0 unmixed, 1 random)")
+    fig.supylabel(PROGRESS_LABEL[an.normalize])
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return fig
 
 
 def plot_t95_by_speed(table: pd.DataFrame, path: str | Path) -> Path:
@@ -72,6 +81,13 @@ def plot_t95_by_speed(table: pd.DataFrame, path: str | Path) -> Path:
     ax.set_ylabel("T95 (s)")
     ax.legend()
     fig.tight_layout()
+    return _save(fig, path)
+
+
+def _save(fig, path: str | Path) -> Path:
+    """Save a figure (120 dpi) and close it."""
+    import matplotlib.pyplot as plt
+
     path = Path(path)
     fig.savefig(path, dpi=120)
     plt.close(fig)
