@@ -174,3 +174,39 @@ def test_lost_particles_are_refused_or_dropped_and_reported(bed):
     df = compute_indices([f0, f1], ["LI", "SI"], cfg, allow_lost=True)
     assert df.attrs["dropped_particles"] == 1
     assert len(df) == 2
+
+
+@pytest.mark.parametrize("periodic", [False, True], ids=["closed", "periodic-x"])
+def test_cell_list_search_equals_kd_tree(periodic):
+    """Contacts and the 12 nearest neighbours from the cell-list search are exactly those of a
+    KD-tree (scipy's cKDTree, periodic box included), with free-surface and flying particles
+    (whose 12th neighbour lies beyond the first shell of cells)."""
+    from scipy.spatial import cKDTree
+
+    from twin_core.mixing.neighbours import neighbour_search
+
+    rng = np.random.default_rng(4)
+    n = 2500
+    pos = rng.random((n, 3)) * [0.04, 0.05, 0.03]
+    pos[:8] += [0.0, 0.0, 0.5]  # far above the bed
+    radii = rng.uniform(0.4e-3, 1.2e-3, n)
+    L = 0.04
+    box = np.array([L, np.inf, np.inf]) if periodic else None
+    pairs, nb = neighbour_search(pos, radii, box, 0.02, 12)
+    ref_pos = pos.copy()
+    size = None
+    if periodic:
+        ref_pos[:, 0] = np.mod(ref_pos[:, 0], L)
+        ref_pos[:, 1:] -= ref_pos[:, 1:].min(axis=0)
+        size = np.array([L, 4 * (np.ptp(ref_pos[:, 1]) + 1), 4 * (np.ptp(ref_pos[:, 2]) + 1)])
+    tree = cKDTree(ref_pos, boxsize=size)
+    _, idx = tree.query(ref_pos, k=13)
+    assert all(set(a) == set(b) for a, b in zip(nb, idx[:, 1:]))
+    cand = tree.query_pairs(2 * radii.max() * 1.02, output_type="ndarray")
+    d = tree.data[cand[:, 1]] - tree.data[cand[:, 0]]
+    if periodic:
+        d[:, 0] -= L * np.round(d[:, 0] / L)
+    near = np.linalg.norm(d, axis=1) < (radii[cand[:, 0]] + radii[cand[:, 1]]) * 1.02
+    ref = np.sort(cand[near], axis=1)
+    ref = ref[np.lexsort((ref[:, 1], ref[:, 0]))]
+    assert np.array_equal(pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))], ref)
