@@ -95,3 +95,36 @@ def test_selection_helper():
     assert "VBBC" not in select_indices(n_components=3)
     with pytest.raises(ValueError, match="n_components"):
         select_indices(n_components=1)
+
+
+@pytest.mark.parametrize("t0", [0.0, 2.0, 4.0])
+def test_delayed_onset_fit_recovers_the_filling_time(t0):
+    """M = 0 until t0, then Eq. (29) in t - t0 (A = 1, gamma = 0.8), white noise 0.02: the
+    delayed fit recovers t0 and T95 = t0 + ln(20)/gamma; Eq. (29) fitted from the first sample
+    reads the flat start as slower mixing (smaller gamma, later T95) once there is one."""
+    from twin_core.mixing.t95 import delayed_model, fit_delayed_onset
+
+    rng = np.random.default_rng(int(10 * t0))
+    t = np.arange(0, 15, 0.1)
+    m = delayed_model(t, 1.0, 0.8, t0) + rng.normal(0, 0.02, t.size)
+    fit = fit_delayed_onset(t, m)
+    assert fit.t0 == pytest.approx(t0, abs=0.2)
+    assert fit.gamma == pytest.approx(0.8, rel=0.06)
+    assert fit.t95 == pytest.approx(t0 + np.log(20) / 0.8, rel=0.03)
+    assert fit.r2 > 0.99
+    plain = fit_t95(t, m)
+    if t0 > 0:
+        assert plain.gamma < 0.6 and plain.t95 > fit.t95 + 1.0 and plain.r2 < fit.r2
+
+
+def test_delayed_onset_fit_of_an_oscillating_curve():
+    from twin_core.mixing.t95 import delayed_model, fit_delayed_onset
+
+    rng = np.random.default_rng(2)
+    t = np.arange(0, 20, 0.1)
+    m = delayed_model(t, 0.8, 0.5, 3.0, 1.7) + rng.normal(0, 0.01, t.size)
+    fit = fit_delayed_onset(t, m, "osc", smooth_window=None)
+    assert fit.t0 == pytest.approx(3.0, abs=0.2)
+    assert fit.gamma == pytest.approx(0.5, rel=0.1) and fit.w == pytest.approx(1.7, rel=0.05)
+    with pytest.raises(ValueError, match="at least 8 finite"):
+        fit_delayed_onset(t[:5], m[:5])
