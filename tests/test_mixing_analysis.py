@@ -26,7 +26,8 @@ def bed():
     return pos, np.array(n) * a
 
 
-def run(k, seed=0, t_end=12.0, dt=0.2):
+def run(k, seed=0, t_end=12.0, dt=0.2, onset=0.0):
+    """A bed whose randomised fraction grows as 1 - exp(-k (t - onset)) after ``onset``."""
     pos0, size = bed()
     n = len(pos0)
     types = (pos0[:, 1] >= size[1] / 2).astype(int)
@@ -34,7 +35,7 @@ def run(k, seed=0, t_end=12.0, dt=0.2):
     order = rng.permutation(n)
     frames = []
     for t in np.arange(0, t_end + 1e-9, dt):
-        sel = np.sort(order[: int((1 - np.exp(-k * t)) * n)])
+        sel = np.sort(order[: int((1 - np.exp(-k * max(t - onset, 0.0))) * n)])
         pos = pos0.copy()
         pos[sel] = pos0[rng.permutation(sel)]
         frames.append(Frame(float(t), np.arange(n), types, np.full(n, R), pos, np.zeros_like(pos)))
@@ -63,6 +64,19 @@ def test_lacey_progress_rate_matches_swap_rate(analyses):
     fit = analyses[100].fits["LI"]
     assert fit.gamma == pytest.approx(2 * 0.6, rel=0.15)
     assert fit.r2 > 0.9
+
+
+def test_onset_fit_beside_eq29_when_mixing_starts_late():
+    """Mixing starts at 3 s: the delayed-onset fit finds the onset and the Lacey rate 2 k
+    (Lacey variance of a partially randomised bed); its T95 comes earlier than that of Eq. (29)
+    fitted from t = 0, which reads the idle start as slow mixing."""
+    frames, cfg = run(0.6, t_end=14.0, onset=3.0)
+    table = analyze(frames, cfg, "LI,ESI,DM").t95_table()
+    assert {"t0_s", "T95_onset_s", "R2_onset"} <= set(table.columns)
+    li = table.loc["LI"]
+    assert li["t0_s"] == pytest.approx(3.0, abs=0.4)
+    assert li["T95_onset_s"] == pytest.approx(3.0 + np.log(20) / 1.2, abs=0.6)
+    assert np.all(table["T95_onset_s"] < table["T95_s"]) and np.all(table["R2_onset"] > 0.95)
 
 
 def test_progress_axis_says_what_one_means(analyses):

@@ -78,17 +78,18 @@ def test_fit_errors():
 
 def test_feature_table_matches_figure_4_4():
     p = index_properties()
-    assert p.shape[0] == 15
+    assert p.shape[0] == 16 and p["seed"].sum() == 15 and not p.loc["SSI", "seed"]
     sm = p.loc["SM"]
     assert sm["computational_complexity"] and sm["direction"] and sm["parameter_dependency"]
     assert not sm["color_dependency"] and not sm["grid_dependency"]
     assert not p.loc["LI", ["computational_complexity", "direction", "size"]].any()
     assert p["grid_dependency"].sum() == 8 and p.loc["VBBC", "color_dependency"] == False  # noqa: E712
+    assert not p.loc["SSI", ["grid_dependency", "size", "parameter_dependency"]].any()
 
 
 def test_selection_helper():
     assert set(select_indices(polydisperse=True)) == {
-        "LI", "RSD", "VRR", "VBBC", "ESI", "ME", "DM", "MSI", "AH",
+        "LI", "RSD", "VRR", "VBBC", "ESI", "ME", "DM", "MSI", "AH", "SSI",
     }  # fmt: skip
     assert select_indices(need_direction=True) == ["SM", "AH", "NDM"]
     assert "CN" not in select_indices(bulk_stays_intact=False)

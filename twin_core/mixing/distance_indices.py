@@ -14,22 +14,89 @@ from numba import njit, prange
 from twin_core.mixing.neighbours import minimum_image_distance
 
 
-def average_height(coord: np.ndarray, types: np.ndarray, tracer: int, origin: float = 0.0) -> float:
+def average_height(
+    coord: np.ndarray,
+    types: np.ndarray,
+    tracer: int,
+    origin: float = 0.0,
+    weights: np.ndarray | None = None,
+) -> float:
     """AH = mean height of tracer particles / mean height of all particles (seed Eq. 28).
 
     ``coord``: positions along the chosen axis; heights are measured from ``origin`` (the
     container floor). 1 when mixed along that axis. The seed's Eq. (28) places 1/N_red outside
     the ratio; the intended quantity (text of 4.3.1.15 and the original, Deen et al. 2010) is
-    the ratio of the two mean heights used here.
+    the ratio of the two mean heights used here. ``weights`` (particle volumes): the ratio of
+    the two centres of volume, for polydisperse beds.
     """
     h = np.asarray(coord, float) - origin
     sel = np.asarray(types) == tracer
     if not sel.any():
         raise ValueError(f"no particle of tracer type {tracer}")
-    mean_all = h.mean()
+    w = np.ones(len(h)) if weights is None else np.asarray(weights, float)
+    mean_all = np.sum(w * h) / w.sum()
     if mean_all == 0:
         raise ValueError("mean height of all particles is zero: choose an origin below the bed")
-    return float(h[sel].mean() / mean_all)
+    return float(np.sum(w[sel] * h[sel]) / w[sel].sum() / mean_all)
+
+
+def centroid(positions: np.ndarray, weights: np.ndarray | None = None, box=None) -> np.ndarray:
+    """(Weighted) centre of the positions; on periodic axes the circular mean (positions as
+    angles on the period's circle), which does not depend on where the box is cut.
+    Reference: Bai & Breen, J. Graphics Tools 13 (2008) 53 (centre of mass with periodic
+    boundaries)."""
+    pos = np.asarray(positions, float)
+    w = np.ones(len(pos)) if weights is None else np.asarray(weights, float)
+    out = np.sum(w[:, None] * pos, axis=0) / w.sum()
+    period = _box_array(box)
+    for ax in np.flatnonzero(period > 0):
+        angle = 2 * math.pi * pos[:, ax] / period[ax]
+        mean = math.atan2(np.sum(w * np.sin(angle)), np.sum(w * np.cos(angle)))
+        out[ax] = np.mod(mean, 2 * math.pi) * period[ax] / (2 * math.pi)
+    return out
+
+
+def spreading_radius(positions: np.ndarray, weights: np.ndarray | None = None, box=None) -> float:
+    """Mean distance of the particles from their centroid (minimum image on periodic axes;
+    volume-weighted with ``weights``)."""
+    pos = np.asarray(positions, float)
+    c = centroid(pos, weights, box)
+    d = minimum_image_distance(np.broadcast_to(c, pos.shape), pos, box)
+    w = np.ones(len(pos)) if weights is None else np.asarray(weights, float)
+    return float(np.sum(w * d) / w.sum())
+
+
+def sphere_spreading_index(
+    positions: np.ndarray,
+    types: np.ndarray,
+    tracer: int,
+    radius0: float,
+    weights: np.ndarray | None = None,
+    box=None,
+) -> float:
+    """Sphere spreading index: ``SSI = (R_A - R_A,0) / (R - R_A,0)``.
+
+    ``R_A`` is the mean distance of the tracer particles from their centroid (the radius of the
+    "sphere" they fill), ``R`` the same for all particles, ``R_A,0 = radius0`` the tracer's at
+    the reference (initial) frame. 0 initially; 1 once the tracer is spread over the bed as
+    widely as the bed itself, whatever its shape; a tracer cut into a thin shell can overshoot
+    1. A uniform ball of radius ``a`` has ``R = 3 a / 4``. ``weights``: volume weighting.
+
+    Reference: Füvesi, Goniva, Luding & Magnanimo, "Mixing indices in up-scaled simulations",
+    Powder Technol. (2025) 120775, doi:10.1016/j.powtec.2025.120775. The definition is the one
+    of the authors' published code (``SphereSpreadingMethod`` in ``mixingIndices.py`` of the
+    repository accompanying the paper); the paper's own text was not available to check it.
+    """
+    sel = np.asarray(types) == tracer
+    if not sel.any():
+        raise ValueError(f"no particle of tracer type {tracer}")
+    pos = np.asarray(positions, float)
+    w = None if weights is None else np.asarray(weights, float)
+    r_a = spreading_radius(pos[sel], None if w is None else w[sel], box)
+    r_all = spreading_radius(pos, w, box)
+    if r_all == radius0:
+        raise ValueError("the bed is no wider than the initial tracer: SSI undefined")
+    return float((r_a - radius0) / (r_all - radius0))
 
 
 def neighbour_distance_index(
@@ -47,9 +114,8 @@ def neighbour_distance_index(
     Reference: Deen et al., Chem. Eng. Sci. 65 (2010) 1 ("neighbour distance method"); the seed's
     Eq. (20) writes sums where the original compares mean distances.
     """
-    pos = np.asarray(positions, float)
-    d_nb = minimum_image_distance(pos[neighbour_pairs[:, 0]], pos[neighbour_pairs[:, 1]], box)
-    d_rand = minimum_image_distance(pos[random_pairs[:, 0]], pos[random_pairs[:, 1]], box)
+    d_nb = pair_distances(positions, neighbour_pairs, box)
+    d_rand = pair_distances(positions, random_pairs, box)
     denom = d_rand.mean() - contact_distance
     if denom <= 0:
         raise ValueError("random pairs are not farther apart than the contact distance")
@@ -66,6 +132,24 @@ def _dist(p, q, i, j, box):
             d -= L * np.rint(d / L)
         s += d * d
     return math.sqrt(s)
+
+
+@njit(cache=True)
+def _pair_distances(pos, pairs, box):
+    """Minimum-image distance of each pair ``(i, j)`` (``box``: period per axis, 0 = none)."""
+    out = np.empty(pairs.shape[0])
+    for k in range(pairs.shape[0]):
+        out[k] = _dist(pos, pos, pairs[k, 0], pairs[k, 1], box)
+    return out
+
+
+def pair_distances(positions: np.ndarray, pairs: np.ndarray, box=None) -> np.ndarray:
+    """Centre distance of each pair ``(i, j)``, minimum image on periodic axes."""
+    return _pair_distances(
+        np.ascontiguousarray(positions, dtype=np.float64),
+        np.ascontiguousarray(pairs, dtype=np.int64),
+        _box_array(box),
+    )
 
 
 @njit(cache=True, parallel=True)
@@ -135,8 +219,8 @@ def siiria_index_sampled(
     """
     _check_siiria(R, g)
     n = len(positions0)
-    d0 = minimum_image_distance(positions0[pairs[:, 0]], positions0[pairs[:, 1]], box)
-    dk = minimum_image_distance(positions[pairs[:, 0]], positions[pairs[:, 1]], box)
+    d0 = pair_distances(positions0, pairs, box)
+    dk = pair_distances(positions, pairs, box)
     m = R ** (g * d0) * (1.0 - R ** (g * np.abs(d0 - dk)))
     scale = (n - 1) / n
     return float(scale * m.mean()), float(scale * m.std(ddof=1) / np.sqrt(len(m)))

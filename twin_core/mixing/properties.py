@@ -9,31 +9,35 @@ from __future__ import annotations
 
 import pandas as pd
 
-from twin_core.mixing.series import INDEX_NAMES
+from twin_core.mixing.series import INDEX_NAMES, SEED_INDICES
 
-#: Figure 4.4, row by row ("Y" -> True)
+#: Figure 4.4, row by row ("Y" -> True), followed by the sphere spreading index (not in the
+#: seed: cheap, one species, no grid, all directions at once, centroid distances only, no
+#: parameter)
 _FIG_4_4 = {
-    "computational_complexity": "N N N N N N N N Y N Y Y Y N N",
-    "color_dependency": "Y Y Y N Y N Y Y N Y N Y N N N",
-    "grid_dependency": "Y Y Y Y Y Y Y Y N N N N N N N",
-    "direction": "N N N N N N N N Y Y Y N N N N",
-    "size": "N N N N N N N N Y N Y Y Y Y Y",
-    "parameter_dependency": "N N N N N N N N Y N N Y N N N",
+    "computational_complexity": "N N N N N N N N Y N Y Y Y N N  N",
+    "color_dependency": "Y Y Y N Y N Y Y N Y N Y N N N  Y",
+    "grid_dependency": "Y Y Y Y Y Y Y Y N N N N N N N  N",
+    "direction": "N N N N N N N N Y Y Y N N N N  N",
+    "size": "N N N N N N N N Y N Y Y Y Y Y  N",
+    "parameter_dependency": "N N N N N N N N Y N N Y N N N  N",
 }
 
 #: classification of Figure 4.3 (variance / contact / distance based)
 CATEGORY = {
     **dict.fromkeys(["VRR", "VBBC", "RSD", "LI", "MSI", "ESI", "DM", "ME"], "variance"),
     **dict.fromkeys(["SI", "PS", "NNM", "CN"], "contact"),
-    **dict.fromkeys(["AH", "SM", "NDM"], "distance"),
+    **dict.fromkeys(["AH", "SM", "NDM", "SSI"], "distance"),
 }
 
 
 def index_properties() -> pd.DataFrame:
-    """Figure 4.4 as a boolean table (rows: indices, columns: features) plus the category."""
+    """Figure 4.4 as a boolean table (rows: indices, columns: features) plus the category and
+    whether the row is the seed's (``seed``; False for the sphere spreading index)."""
     data = {feat: [v == "Y" for v in row.split()] for feat, row in _FIG_4_4.items()}
     df = pd.DataFrame(data, index=list(INDEX_NAMES))
     df["category"] = [CATEGORY[name] for name in df.index]
+    df["seed"] = [name in SEED_INDICES for name in df.index]
     return df
 
 
