@@ -1,7 +1,8 @@
 """Figures of the mixing analysis (PNG files written where the caller asks).
 
 ``plot_analysis``: each index's progress, smoothed curve and T95 fit (seed Figure 4.6);
-``plot_t95_by_speed``: T95 per index and blade speed (seed Figure 4.7).
+``plot_t95_by_speed``: T95 per index and blade speed (seed Figure 4.7); ``velocity_figure``:
+the mean velocity field in a plane; ``homogeneity_figure``: homogeneity indices over time.
 """
 
 from __future__ import annotations
@@ -12,10 +13,15 @@ import numpy as np
 import pandas as pd
 
 from twin_core.mixing.analysis import MixingAnalysis
+from twin_core.mixing.fields import VelocityFields
+from twin_core.mixing.grid import CylindricalGrid, GridSpec
 from twin_core.mixing.series import INDEX_NAMES
 from twin_core.mixing.t95 import exponential_model, oscillating_model, smooth
 
-__all__ = ["analysis_figure", "plot_analysis", "plot_t95_by_speed"]
+__all__ = [
+    "analysis_figure", "homogeneity_figure", "plot_analysis", "plot_t95_by_speed", "save_figure",
+    "velocity_figure",
+]  # fmt: skip
 
 #: what 1 means on the progress axis, by the normalisation of :func:`~twin_core.mixing.analysis.analyze`
 PROGRESS_LABEL = {
@@ -92,3 +98,81 @@ def _save(fig, path: str | Path) -> Path:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def _plane_average(values: np.ndarray, amount: np.ndarray, shape, axis: int):
+    """Amount-weighted average of a cell field over one grid axis: ``(n_a, n_b, d)``."""
+    v = np.nan_to_num(values).reshape(*shape, -1)
+    w = amount.reshape(shape)[..., None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (v * w).sum(axis=axis) / w.sum(axis=axis)
+    return np.where(w.sum(axis=axis) > 0, out, np.nan)
+
+
+def velocity_figure(fields: VelocityFields, grid: GridSpec | CylindricalGrid):
+    """The mean velocity field in a plane, arrows coloured by speed. Cartesian grids: averaged
+    over the axis with the fewest cells (a slab's thickness); cylindrical bins: the
+    cross-section when one bin deep, else the radius-axial plane averaged over the angle."""
+    import matplotlib.pyplot as plt
+
+    amount = fields.amount.sum(axis=0)
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    if isinstance(grid, CylindricalGrid):
+        n_t, n_r, n_z = grid.shape
+        if n_z == 1:
+            centre = grid.cell_centres()
+            a, b = grid.cross_axes
+            theta = np.arctan2(centre[:, b] - grid.centre[1], centre[:, a] - grid.centre[0])
+            vr, vt = fields.mean[:, 0], fields.mean[:, 1]
+            u, v = vr * np.cos(theta) - vt * np.sin(theta), vr * np.sin(theta) + vt * np.cos(theta)
+            x, y = centre[:, a], centre[:, b]
+            labels = ("xyz"[a] + " (m)", "xyz"[b] + " (m)")
+            ax.set_aspect("equal")
+        else:
+            plane = _plane_average(fields.mean, amount, grid.shape, 0)
+            e = grid.ring_edges()
+            rr, zz = np.meshgrid(0.5 * (e[:-1] + e[1:]), grid.lo + (np.arange(n_z) + 0.5) * (grid.hi - grid.lo) / n_z, indexing="ij")  # fmt: skip
+            x, y, u, v = rr.ravel(), zz.ravel(), plane[..., 0].ravel(), plane[..., 2].ravel()
+            labels = ("r (m)", "xyz"[grid.axis] + " (m)")
+    else:
+        axis = int(np.argmin(grid.shape))
+        keep = [k for k in range(3) if k != axis]
+        plane = _plane_average(fields.mean, amount, grid.shape, axis)
+        centre = grid.cell_centres().reshape(*grid.shape, 3)
+        centre = np.take(centre, 0, axis=axis)
+        x, y = centre[..., keep[0]].ravel(), centre[..., keep[1]].ravel()
+        u, v = plane[..., keep[0]].ravel(), plane[..., keep[1]].ravel()
+        labels = ("xyz"[keep[0]] + " (m)", "xyz"[keep[1]] + " (m)")
+        ax.set_aspect("equal")
+    speed = np.hypot(u, v)
+    ok = np.isfinite(speed)
+    still = not np.any(speed[ok] > 0)  # no in-plane motion: dots, not a zero-length scale
+    q = ax.quiver(
+        x[ok], y[ok], u[ok], v[ok], speed[ok], cmap="viridis", scale=1.0 if still else None
+    )
+    fig.colorbar(q, ax=ax, label="in-plane speed (m/s)")
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
+    ax.set_title("mean velocity field", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def homogeneity_figure(series: pd.DataFrame):
+    """Homogeneity index of each attribute over time (one panel per attribute: units differ)."""
+    import matplotlib.pyplot as plt
+
+    cols = [c for c in series.columns if c.startswith("HI_")]
+    fig, axes = plt.subplots(1, len(cols), figsize=(3.6 * len(cols), 2.8), squeeze=False)
+    for ax, col in zip(axes[0], cols):
+        ax.plot(series["t"], series[col], "-", color="C0", lw=1)
+        ax.set_title(f"homogeneity of {col[3:]}", fontsize=9)
+        ax.set_xlabel("time (s)")
+    axes[0, 0].set_ylabel("HI (attribute units)")
+    fig.tight_layout()
+    return fig
+
+
+def save_figure(fig, path: str | Path) -> Path:
+    """Save a figure drawn by this module (120 dpi) and close it."""
+    return _save(fig, path)
