@@ -6,7 +6,10 @@ rises, Table 4.2), and the Lacey progress, which for a random swap of fraction f
 1 - (1 - f)^2 (variance of a binary mixture, Lacey 1954), must give gamma = 2 k.
 """
 
+import json
+
 import numpy as np
+import pandas as pd
 import pytest
 
 from twin_core.dem.frames import Frame, FrameWriter
@@ -15,6 +18,11 @@ from twin_core.mixing.analysis import analyze, t95_by_speed
 from twin_core.mixing.plots import analysis_figure, plot_analysis, plot_t95_by_speed
 
 R = 1e-3
+
+
+def bed_frame(t, ids, types, radii, pos):
+    """A particle frame at rest."""
+    return Frame(t, ids, types, radii, pos, np.zeros_like(pos))
 
 
 def bed():
@@ -38,7 +46,7 @@ def run(k, seed=0, t_end=12.0, dt=0.2, onset=0.0):
         sel = np.sort(order[: int((1 - np.exp(-k * max(t - onset, 0.0))) * n)])
         pos = pos0.copy()
         pos[sel] = pos0[rng.permutation(sel)]
-        frames.append(Frame(float(t), np.arange(n), types, np.full(n, R), pos, np.zeros_like(pos)))
+        frames.append(bed_frame(float(t), np.arange(n), types, np.full(n, R), pos))
     grid = GridSpec((0, 0, 0), tuple(size), (1, 8, 8))
     return frames, MixingConfig(grid=grid, box=(size[0], np.inf, np.inf), ah_axis=1, sm_pairs=5000)
 
@@ -94,7 +102,14 @@ def test_figures_written(analyses, tmp_path):
     assert plot_t95_by_speed(table, tmp_path / "b.png").stat().st_size > 5_000
 
 
-def test_cli_compute_on_frames_directory(tmp_path):
+def write_frames(directory, frames, meta):
+    with FrameWriter(directory, chunk_frames=8, meta=meta) as w:
+        for f in frames:
+            w.append(f)
+    return directory
+
+
+def test_cli_compute_on_frames_directory(tmp_path, capsys):
     from services.cli.main import main
 
     frames, cfg = run(0.6, t_end=6.0, dt=0.3)
@@ -103,9 +118,7 @@ def test_cli_compute_on_frames_directory(tmp_path):
         "domain_hi": list(cfg.grid.hi),
         "periodic": [True, False, False],
     }
-    with FrameWriter(tmp_path / "frames", chunk_frames=8, meta=meta) as w:
-        for f in frames:
-            w.append(f)
+    write_frames(tmp_path / "frames", frames, meta)
     out = tmp_path / "out"
     rc = main(["mixing", "compute", str(tmp_path / "frames"), "--indices", "LI,RSD,CN,SI",
                "--out", str(out)])  # fmt: skip
@@ -113,4 +126,70 @@ def test_cli_compute_on_frames_directory(tmp_path):
     for name in ("indices.csv", "progress.csv", "t95.csv", "mixing_indices.png", "summary.json"):
         assert (out / name).exists()
     text = (out / "t95.csv").read_text()
-    assert "LI" in text and "SI" in text
+    assert "LI" in text and "SI" in text and "T95_onset_s" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["domain_source"] == "meta" and summary["dropped_particles"] == 0
+
+
+def test_cli_compute_drops_lost_particles_and_derives_the_domain(tmp_path, capsys):
+    """Particles that left the domain are dropped and counted; frames without a domain are
+    sampled over the particle extents, and the output says so."""
+    from services.cli.main import main
+
+    frames, _ = run(0.6, t_end=6.0, dt=0.3)
+    lost = np.isin(frames[0].ids, [3, 17])
+    moving = []
+    for k, f in enumerate(frames):
+        keep = ~lost if k >= 5 else np.ones(len(f.ids), bool)
+        vel = np.zeros_like(f.positions)
+        vel[:, 0] = 0.01 * f.positions[:, 2]  # a shear flow, for the velocity field
+        moving.append(Frame(f.t, f.ids[keep], f.types[keep], f.radii[keep], f.positions[keep],
+                            vel[keep]))  # fmt: skip
+    write_frames(tmp_path / "frames", moving, {})
+    out = tmp_path / "out"
+    rc = main(["mixing", "compute", str(tmp_path / "frames"), "--indices", "LI,ESI,SSI",
+               "--bins", "cartesian:1x4x4", "--weight", "volume", "--mapping", "fractional",
+               "--min-fill", "0.3", "--homogeneity", "radius,speed", "--out", str(out)])  # fmt: skip
+    assert rc == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["dropped_particles"] == 2
+    assert summary["domain_source"] == "particle extents"
+    assert summary["weight"] == "volume" and summary["mapping"] == "fractional"
+    printed = capsys.readouterr().out
+    assert "2 particles left the domain" in printed and "particle extents" in printed
+    mean = pd.read_csv(out / "velocity_mean.csv")
+    assert mean["vx_m_s"].to_numpy() == pytest.approx(0.01 * mean["z_m"].to_numpy(), rel=0.2)
+    for name in ("velocity.png", "homogeneity.png", "homogeneity.csv", "velocity_frames.csv"):
+        assert (out / name).exists()
+
+
+def test_cli_compute_cylindrical_bins_and_bad_input(tmp_path, capsys):
+    from services.cli.main import main
+
+    frames, cfg = run(0.6, t_end=6.0, dt=0.3)
+    write_frames(tmp_path / "frames", frames, {"domain_lo": list(cfg.grid.lo),
+                                                "domain_hi": list(cfg.grid.hi)})  # fmt: skip
+    out = tmp_path / "out"
+    rc = main(["mixing", "compute", str(tmp_path / "frames"), "--indices", "LI,DM",
+               "--bins", "cylindrical:4x2x3,axis=x", "--out", str(out)])  # fmt: skip
+    assert rc == 0
+    assert json.loads((out / "summary.json").read_text())["grid"].startswith("cylindrical:4x2x3")
+    with pytest.raises(SystemExit, match="twin mixing compute: bins must be"):
+        main(["mixing", "compute", str(tmp_path / "frames"), "--bins", "spherical:2x2x2",
+              "--out", str(out)])  # fmt: skip
+    with pytest.raises(SystemExit, match="--slice must look like"):
+        main(["mixing", "compute", str(tmp_path / "frames"), "--slice", "z=0.1", "--out", str(out)])
+
+
+def test_uncoloured_run_split_at_the_first_frame():
+    """A run whose frames carry no colour: --split y makes the near half (by volume) of the
+    first frame's bed the tracer in every frame, so LI starts at its segregated bound."""
+    from twin_core.mixing.runs import RunOptions, analyze_run
+
+    frames, cfg = run(0.6, t_end=3.0, dt=0.3)
+    plain = [Frame(f.t, f.ids, np.ones(len(f.ids), int), f.radii, f.positions, f.velocities)
+             for f in frames]  # fmt: skip
+    meta = {"domain_lo": list(cfg.grid.lo), "domain_hi": list(cfg.grid.hi)}
+    result = analyze_run(plain, meta, RunOptions(indices="LI", split="y", weight="volume"))
+    li = result.analysis.indices["LI"].to_numpy()
+    assert abs(li[0]) < 0.05 and li[-1] > 0.5

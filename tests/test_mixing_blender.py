@@ -146,4 +146,5 @@ def test_blender_outputs_follow_their_contracts(runs):
         assert f["crossings_z"][:, :, -1].sum() == 0
         assert f["duration_s"] > 0 and f["particle_mass_kg"] > 0
     assert (run / "mixing" / "t95_by_speed.png").stat().st_size > 5_000
-    assert (run / "mixing" / "mixing_indices_100rpm.png").exists()
+    assert (run / "mixing" / "rpm_100" / "mixing_indices.png").exists()
+    assert (run / "mixing" / "rpm_100" / "velocity.png").exists()

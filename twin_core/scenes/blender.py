@@ -281,59 +281,40 @@ def analyze(
     return results
 
 
-def _blender_run(cfg: Any, rpm: float, runs_dir: Path, indices: str, sm_pairs: int | None) -> Any:
-    """The mixing analysis of one blade speed's run: tracer = type 1 (left of the plate), x
-    periodic, the Ashton index along y (where the two types start segregated)."""
-    from twin_core.mixing import GridSpec, MixingConfig
-    from twin_core.mixing.analysis import analyze
-
-    run_dir = runs_dir / f"rpm_{rpm:g}" / "frames"
-    if not run_dir.exists():
-        raise ValueError(f"no frames for {rpm:g} rpm at {run_dir}")
-    info = build_geometry(cfg, rpm).info
-    lo, hi = info["domain_lo"], info["domain_hi"]
-    mcfg = MixingConfig(
-        grid=GridSpec(tuple(lo), tuple(hi), (1, 8, 8)),
-        box=(hi[0] - lo[0], np.inf, np.inf),
-        tracer=1,
-        ah_axis=1,
-        sm_pairs=sm_pairs,
-    )
-    frames = [f for f in FrameReader(run_dir) if f.t >= cfg.settle_s - 1e-9]
-    for f in frames:  # wrap x into the periodic section; mixing time from the end of filling
-        f.positions[:, 0] = lo[0] + np.mod(f.positions[:, 0] - lo[0], hi[0] - lo[0])
-        f.t = f.t - cfg.settle_s
-    return analyze(frames, mcfg, indices, allow_lost=True)
-
-
 def blender_mixing(
-    cfg: Any,
-    runs_dir: str | Path,
-    out_dir: str | Path,
-    *,
-    indices: str = "all",
-    sm_pairs: int | None = 20000,
+    cfg: Any, runs_dir: str | Path, out_dir: str | Path, options: Any = None
 ) -> pd.DataFrame:
     """The T95 table across the blade speeds of a blender scene (``cfg``: its
-    ``schemas.dem_scene`` config) from the runs of ``twin dem run`` in ``runs_dir``, written to
-    ``out_dir`` (per speed ``indices_<rpm>rpm.csv``, ``t95_<rpm>rpm.csv``,
-    ``mixing_indices_<rpm>rpm.png``; ``t95_by_speed.csv`` and ``.png``); returns the table."""
+    ``schemas.dem_scene`` config) from the runs of ``twin dem run`` in ``runs_dir``: for each
+    speed :func:`twin_core.mixing.runs.mixing_of_frames` into ``out_dir/rpm_<speed>/``, on the
+    section's domain, x periodic, tracer = type 1 (left of the plate), AH along y (where the two
+    types start segregated), times from the end of filling (``settle_s``); then
+    ``t95_by_speed.csv`` and ``.png``. ``options`` (a ``twin_core.mixing.runs.RunOptions``)
+    gives the rest: indices, weighting, mapping, minimum fill, Siiria pairs. Returns the
+    table."""
+    from dataclasses import replace
+
     from twin_core.mixing.analysis import t95_by_speed
-    from twin_core.mixing.plots import plot_analysis, plot_t95_by_speed
+    from twin_core.mixing.plots import plot_t95_by_speed
+    from twin_core.mixing.runs import RunOptions, mixing_of_frames
 
     if cfg.scene != "blender":
         raise ValueError(f"scene must be a blender scene, got {cfg.scene!r}")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     analyses = {}
     for rpm in cfg.rpms:
-        an = analyses[rpm] = _blender_run(cfg, rpm, Path(runs_dir), indices, sm_pairs)
-        tag = f"{rpm:g}rpm"
-        an.indices.to_csv(out / f"indices_{tag}.csv", index=False)
-        an.t95_table().to_csv(out / f"t95_{tag}.csv")
-        plot_analysis(an, out / f"mixing_indices_{tag}.png")
-        dropped = an.indices.attrs.get("dropped_particles", 0)
-        log.info("%g rpm: %d particles dropped (left the domain)", rpm, dropped)
+        run_dir = Path(runs_dir) / f"rpm_{rpm:g}" / "frames"
+        if not run_dir.exists():
+            raise ValueError(f"no frames for {rpm:g} rpm at {run_dir}")
+        info = build_geometry(cfg, rpm).info
+        speed = replace(
+            options or RunOptions(), bins="1x8x8", lo=tuple(info["domain_lo"]),
+            hi=tuple(info["domain_hi"]), periodic="x", tracer=1, ah_axis=1, start=cfg.settle_s,
+            time_from_start=True,
+        )  # fmt: skip
+        result = mixing_of_frames(run_dir, out / f"rpm_{rpm:g}", speed)
+        analyses[rpm] = result.analysis
+        log.info("%g rpm: %d particles dropped (left the domain)", rpm, result.dropped_particles)
     table = t95_by_speed(analyses)
     table.to_csv(out / "t95_by_speed.csv")
     plot_t95_by_speed(table, out / "t95_by_speed.png")
