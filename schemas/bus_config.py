@@ -43,16 +43,51 @@ def _check_endpoint(value: str) -> str:
     return value
 
 
+def is_loopback(endpoint: str) -> bool:
+    """Whether an endpoint (``<proto>/<host>:<port>``) names the loopback interface."""
+    host = endpoint.partition("/")[2].rsplit(":", 1)[0].strip("[]").split("#")[0]
+    return host == "localhost" or host.startswith("127.") or host == "::1"
+
+
 class UserPassword(StrictModel):
     """User/password authentication (``transport/auth/usrpwd``).
 
-    ``user``/``password``: the credentials this session presents; ``dictionary_file``: a file of
-    ``user:password`` lines that this session accepts from others (needed on a listener).
+    ``user``: the name this session presents, with its password read when the session opens
+    from ``password_file`` (a file holding only the password, readable by its owner alone) or
+    from the environment variable ``password_env``: a password is never written in a
+    configuration file. ``dictionary_file``: a file of ``user:password`` lines that this session
+    accepts from others (a listener; it needs no password of its own).
     """
 
-    user: str = Field(min_length=1)
-    password: str = Field(min_length=1)
+    user: str | None = Field(None, min_length=1)
+    password_file: Path | None = None
+    password_env: str | None = Field(None, min_length=1)
     dictionary_file: Path | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_inline_password(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "password" in data:
+            raise ValueError(
+                "password must not be written in a configuration; give password_file (a file "
+                "readable by its owner only) or password_env (an environment variable), got an "
+                "inline password"
+            )
+        return data
+
+    @model_validator(mode="after")
+    def _one_source(self) -> UserPassword:
+        sources = [n for n in ("password_file", "password_env") if getattr(self, n) is not None]
+        if len(sources) > 1:
+            raise ValueError(f"give one of password_file and password_env, got {sources}")
+        if (self.user is None) != (not sources):
+            raise ValueError(
+                "user and a password source (password_file or password_env) go together, got "
+                f"user={self.user!r} and {sources or 'no password source'}"
+            )
+        if self.user is None and self.dictionary_file is None:
+            raise ValueError("usrpwd must give a user or a dictionary_file, got neither")
+        return self
 
 
 class Tls(StrictModel):
@@ -147,6 +182,8 @@ class BusConfig(StrictModel):
         timestamping: zenoh HLC timestamps on samples.
         line: the line name used in key expressions (``twin/<line>/...``).
         usrpwd, tls, access_control: security options (None = off).
+        allow_insecure_listen: accept listening on a non-loopback endpoint without TLS or
+            user/password authentication (refused otherwise, :meth:`insecure_listeners`).
         extra: raw zenoh config entries (dotted path -> value) applied last, for anything not
             modelled here; unknown keys fail loudly when the session opens.
     """
@@ -161,6 +198,7 @@ class BusConfig(StrictModel):
     usrpwd: UserPassword | None = None
     tls: Tls | None = None
     access_control: AccessControl | None = None
+    allow_insecure_listen: bool = False
     extra: dict[str, Any] = Field(default_factory=dict)
 
     @field_validator("listen", "connect")
@@ -182,8 +220,20 @@ class BusConfig(StrictModel):
             return cls(listen=[endpoint], connect=[], **kwargs)
         return cls(listen=[], connect=[endpoint], **kwargs)
 
-    def to_zenoh_dict(self) -> dict[str, Any]:
-        """The zenoh 1.x configuration as nested dicts (JSON-serialisable)."""
+    def insecure_listeners(self) -> list[str]:
+        """Listen endpoints reachable from other hosts (not loopback, not a local socket) with
+        neither TLS nor user/password authentication on them."""
+        if self.usrpwd is not None and self.usrpwd.dictionary_file is not None:
+            return []
+        return [
+            ep
+            for ep in self.listen
+            if not ep.startswith(("tls/", "quic/", "unixsock-stream/")) and not is_loopback(ep)
+        ]
+
+    def to_zenoh_dict(self, password: str | None = None) -> dict[str, Any]:
+        """The zenoh 1.x configuration as nested dicts (JSON-serialisable); ``password``: the
+        user's password (``usrpwd``), read by the caller from its file or variable."""
         cfg: dict[str, Any] = {
             "mode": self.mode,
             "listen": {"endpoints": list(self.listen)},
@@ -196,7 +246,11 @@ class BusConfig(StrictModel):
         }
         transport: dict[str, Any] = {}
         if self.usrpwd is not None:
-            up: dict[str, Any] = {"user": self.usrpwd.user, "password": self.usrpwd.password}
+            up: dict[str, Any] = {}
+            if self.usrpwd.user is not None:
+                if password is None:
+                    raise ValueError(f"usrpwd.user {self.usrpwd.user!r} needs its password")
+                up.update(user=self.usrpwd.user, password=password)
             if self.usrpwd.dictionary_file is not None:
                 up["dictionary_file"] = str(self.usrpwd.dictionary_file)
             transport["auth"] = {"usrpwd": up}

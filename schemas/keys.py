@@ -7,6 +7,7 @@ Examples::
     twin/line1/blender/outlet/predicted   PredictedConcentration
     twin/line1/feeder/api/event           Event
     twin/line1/rtd/estimate               RtdEstimate        (no id)
+    twin/line1/rtd/skipped                RtdSkipped         (no id)
     twin/line1/oos/alert                  OosAlert           (no id)
     twin/line1/divert/command             DivertCommand      (no id)
     twin/line1/dem/job7/request|progress|result
@@ -111,6 +112,11 @@ def rtd_estimate(line: str) -> str:
     return key(line, "rtd", "estimate")
 
 
+def rtd_skipped(line: str) -> str:
+    """Tracer pulses the rtd service did not fit, and why (``RtdSkipped``)."""
+    return key(line, "rtd", "skipped")
+
+
 def model_finding(line: str) -> str:
     return key(line, "closeloop", "finding")
 
@@ -185,6 +191,23 @@ def dem_requests(line: str) -> str:
     return _wild(line, "dem", "*", "request")
 
 
+def dem_jobs(line: str, signal: str) -> str:
+    """One signal of every DEM job (``twin/<line>/dem/*/<signal>``)."""
+    if signal not in ("request", "progress", "result"):
+        raise ValueError(f"signal must be 'request', 'progress' or 'result', got {signal!r}")
+    return _wild(line, "dem", "*", signal)
+
+
+def measured_concentrations(line: str) -> str:
+    """The concentration of every PAT sensor (``twin/<line>/pat/*/concentration``)."""
+    return _wild(line, "pat", "*", "concentration")
+
+
+def service_keys(line: str, service: str) -> str:
+    """A service's own keys: health, liveliness token, ping (``twin/<line>/service/<name>/*``)."""
+    return _wild(line, "service", service, "*")
+
+
 def services_health(line: str) -> str:
     """Health of every service (``twin/<line>/service/*/health``; ``line`` may be ``*``)."""
     return _wild(line, "service", "*", "health")
@@ -214,6 +237,17 @@ ADVANCED_CACHE_SUFFIX = "@adv/pub/**"
 def advanced_caches(key_expr: str) -> str:
     """The cache queryables of the advanced publishers on ``key_expr`` (their history)."""
     return f"{key_expr}/{ADVANCED_CACHE_SUFFIX}"
+
+
+#: the chunk under which zenoh-ext advanced publishers and subscribers keep their caches,
+#: heartbeats and detection tokens (a verbatim chunk: ``*`` and ``**`` do not match it)
+ADVANCED_CHUNK = "@adv"
+
+
+def advanced(key_expr: str) -> str:
+    """Everything zenoh-ext keeps under ``key_expr`` for advanced publishers and subscribers
+    (caches, miss-detection heartbeats, detection tokens): ``<key_expr>/@adv/**``."""
+    return f"{key_expr}/{ADVANCED_CHUNK}/**"
 
 
 # ---------------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ import zenoh
 
 from schemas.bus_config import AccessControl, BusConfig, Tls, UserPassword
 from services.bus import free_port, open_session
+from services.security import write_private
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI")
 
@@ -230,7 +231,7 @@ def test_acl_by_certificate_only_diverter_publishes_divert_commands(pki):
     assert (DIVERT, b"rogue") not in got
 
 
-def test_user_password_auth_and_acl_by_username(tmp_path):
+def test_user_password_auth_and_acl_by_username(tmp_path, monkeypatch):
     users = tmp_path / "users.txt"
     users.write_text("diverter:pw-d\nrogue:pw-r\nrecorder:pw-c\n")
     ep = f"tcp/127.0.0.1:{free_port()}"
@@ -238,12 +239,16 @@ def test_user_password_auth_and_acl_by_username(tmp_path):
         mode="router",
         listen=[ep],
         connect=[],
-        usrpwd=UserPassword(user="router", password="pw-hub", dictionary_file=users),
+        usrpwd=UserPassword(dictionary_file=users),
         access_control=divert_acl("usernames"),
     )
 
     def client(user: str, pw: str) -> BusConfig:
-        return BusConfig(mode="client", connect=[ep], usrpwd=UserPassword(user=user, password=pw))
+        """A client whose password comes from a 0600 file (never inline)."""
+        path = tmp_path / f"{user}-{pw}.pw"
+        write_private(path, pw)
+        up = UserPassword(user=user, password_file=path)
+        return BusConfig(mode="client", connect=[ep], usrpwd=up)
 
     passwords = {"diverter": "pw-d", "rogue": "pw-r", "recorder": "pw-c"}
     got = exchange(hub, {n: client(n, pw) for n, pw in passwords.items()})
@@ -255,3 +260,32 @@ def test_user_password_auth_and_acl_by_username(tmp_path):
             open_session(client("rogue", "wrong")).close()
         with pytest.raises(zenoh.ZError):
             open_session(BusConfig(mode="client", connect=[ep])).close()
+        # the password from an environment variable works as from a file
+        monkeypatch.setenv("TEST_TWIN_PW", "pw-c")
+        env = UserPassword(user="recorder", password_env="TEST_TWIN_PW")
+        open_session(BusConfig(mode="client", connect=[ep], usrpwd=env)).close()
+
+
+def test_passwords_are_never_inline_and_their_files_private(tmp_path):
+    """A configuration with an inline password is refused; a password file readable by others,
+    an unset variable and a listener beyond loopback without TLS or authentication are refused
+    when the session opens, each naming the field."""
+    with pytest.raises(ValueError, match="password must not be written in a configuration"):
+        BusConfig.model_validate({"usrpwd": {"user": "u", "password": "secret"}})
+    loose = tmp_path / "pw"
+    loose.write_text("secret")
+    loose.chmod(0o644)
+    cfg = BusConfig(usrpwd=UserPassword(user="u", password_file=loose))
+    with pytest.raises(ValueError, match="password_file must be readable by its owner only"):
+        open_session(cfg)
+    cfg = BusConfig(usrpwd=UserPassword(user="u", password_env="TWIN_TEST_UNSET_VARIABLE"))
+    with pytest.raises(ValueError, match="password_env names an unset environment variable"):
+        open_session(cfg)
+    exposed = BusConfig(mode="router", listen=["tcp/0.0.0.0:7447"], connect=[])
+    assert exposed.insecure_listeners() == ["tcp/0.0.0.0:7447"]
+    with pytest.raises(ValueError, match="bus.listen: tcp/0.0.0.0:7447"):
+        open_session(exposed)
+    assert BusConfig(mode="router", listen=["tcp/127.0.0.1:7447"]).insecure_listeners() == []
+    assert BusConfig(listen=["tls/0.0.0.0:7447"]).insecure_listeners() == []
+    auth = UserPassword(dictionary_file=tmp_path / "users")
+    assert BusConfig(listen=["tcp/10.0.0.1:7447"], usrpwd=auth).insecure_listeners() == []
