@@ -10,7 +10,9 @@ effects the blender cannot adopt are counted in ``not_adopted``). Publishes one
 ``twin/<line>/blender/outlet/predicted``.
 
 A restarted blender recomputes from the flow history and does not publish a tick again: the last
-published tick is kept in the run's state directory.
+published tick is written to the run's state directory after each tick (one ``pwrite`` of a
+fixed-width number: a crash between a publication and its mark repeats at most that tick, which
+the subscribers and the recorder drop as a duplicate).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from schemas import keys
 from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import Event, FeederFlow, PredictedConcentration, RtdEstimate
+from services.common import TickMark
 from services.service import Service
 from twin_core.online.blender import BlenderPredictor
 from twin_core.online.inlet import event_record
@@ -35,14 +38,8 @@ class BlenderService(Service):
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
         super().__init__("blender", spec=spec, **kwargs)
         self.core = BlenderPredictor(spec)
-        self._mark = self.state_path / "blender.last_t"
-        self.last_published_t = -1.0
-        if self._mark.exists():
-            try:
-                self.last_published_t = float(self._mark.read_text() or -1.0)
-            except ValueError:
-                self.last_published_t = -1.0
-        self._n = 0
+        self._mark = TickMark(self.state_path / "blender.last_t")
+        self.last_published_t = self._mark.read()
 
     def setup(self) -> None:
         line = self.spec.name
@@ -102,18 +99,7 @@ class BlenderService(Service):
                     )
                 )
             self.last_published_t = t
-            self._n += 1
-            if self._n % 200 == 0:
-                self._save_mark()
-
-    def _save_mark(self) -> None:
-        self._mark.parent.mkdir(parents=True, exist_ok=True)
-        self._mark.write_text(repr(self.last_published_t))
-
-    def idle(self) -> None:
-        if self._n:
-            self._save_mark()
+            self._mark.write(t)
 
     def finish(self) -> None:
-        if self._n:
-            self._save_mark()
+        self._mark.close()

@@ -28,13 +28,16 @@ from __future__ import annotations
 
 import json
 import logging
+import math
+import os
 import signal
 import socket
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import zenoh
 import zenoh.ext as zext
@@ -48,14 +51,62 @@ from schemas.messages import ServiceHealth
 log = logging.getLogger(__name__)
 
 JSON = zenoh.Encoding.APPLICATION_JSON
-#: rejection reasons (counter names)
-REJECT_REASONS = ("rejected_json", "rejected_schema", "rejected_time", "rejected_unknown")
+#: rejection reasons (counter names): bad JSON, schema violation, time going backwards on a key,
+#: a key without a model, a feed that does not match the line's configuration
+REJECT_REASONS = (
+    "rejected_json",
+    "rejected_schema",
+    "rejected_time",
+    "rejected_unknown",
+    "rejected_mismatch",
+)
+
+
+def read_password(config: BusConfig) -> str | None:
+    """The password of ``config.usrpwd``'s user: from its ``password_file`` (which must be
+    readable by its owner only) or its ``password_env`` variable; None without a user."""
+    up = config.usrpwd
+    if up is None or up.user is None:
+        return None
+    if up.password_env is not None:
+        value = os.environ.get(up.password_env)
+        if not value:
+            raise ValueError(
+                f"usrpwd.password_env names an unset environment variable, got {up.password_env!r}"
+            )
+        return value
+    path = up.password_file
+    try:
+        mode = path.stat().st_mode
+        text = path.read_text().strip()
+    except OSError as exc:
+        raise ValueError(f"usrpwd.password_file cannot be read, got {str(path)!r}: {exc}") from None
+    if mode & 0o077:
+        raise ValueError(
+            f"usrpwd.password_file must be readable by its owner only (chmod 600), got mode "
+            f"{oct(mode & 0o777)} for {str(path)!r}"
+        )
+    if not text:
+        raise ValueError(f"usrpwd.password_file is empty, got {str(path)!r}")
+    return text
 
 
 def zenoh_config(config: BusConfig | None = None) -> zenoh.Config:
-    """The zenoh ``Config`` of a :class:`BusConfig` (default: loopback peer, scouting off)."""
+    """The zenoh ``Config`` of a :class:`BusConfig` (default: loopback peer, scouting off); the
+    password comes from its file or variable (:func:`read_password`). A listener on another
+    interface than loopback with neither TLS nor authentication is refused unless
+    ``allow_insecure_listen``."""
     config = config or BusConfig()
-    return zenoh.Config.from_json5(json.dumps(config.to_zenoh_dict()))
+    exposed = config.insecure_listeners()
+    if exposed and not config.allow_insecure_listen:
+        raise ValueError(
+            "a listener beyond loopback needs TLS or user/password authentication (or "
+            f"allow_insecure_listen: true), bus.listen: {', '.join(exposed)}"
+        )
+    if exposed:
+        log.warning("listening without TLS or authentication on %s", ", ".join(exposed))
+    cfg = config.to_zenoh_dict(password=read_password(config))
+    return zenoh.Config.from_json5(json.dumps(cfg))
 
 
 def free_port() -> int:
@@ -95,6 +146,71 @@ class Counters:
         """Total rejected messages, all reasons."""
         snap = self.snapshot()
         return sum(snap.get(r, 0) for r in REJECT_REASONS)
+
+
+class RateLimitedLog:
+    """Warnings of one kind, rate-limited per reason: the first ``burst`` of a reason are logged,
+    then at most one every ``period_s`` saying how many were not logged since (the counters
+    hold every one)."""
+
+    def __init__(
+        self, logger: logging.Logger = log, *, burst: int = 5, period_s: float = 10.0
+    ) -> None:
+        self.logger = logger
+        self.burst = burst
+        self.period_s = period_s
+        self._lock = threading.Lock()
+        self._seen: dict[str, int] = {}
+        self._quiet: dict[str, int] = {}
+        self._last: dict[str, float] = {}
+
+    def warn(self, reason: str, text: str) -> bool:
+        """Log ``text`` for ``reason`` unless rate-limited; returns whether it was logged."""
+        now = time.monotonic()
+        with self._lock:
+            n = self._seen.get(reason, 0) + 1
+            self._seen[reason] = n
+            if n > self.burst and now - self._last.get(reason, -math.inf) < self.period_s:
+                self._quiet[reason] = self._quiet.get(reason, 0) + 1
+                return False
+            quiet = self._quiet.pop(reason, 0)
+            self._last[reason] = now
+        more = f" ({quiet} more {reason} not logged since the last one)" if quiet else ""
+        self.logger.warning("%s%s", text, more)
+        return True
+
+
+class StreamOrder:
+    """Per-key order of a stream of messages: each key's messages must come in increasing
+    ``(t, seq)`` (one publisher per key). :meth:`check` says whether a message is ``new``, a
+    ``duplicate`` (a position seen recently on its key: history delivered again, a restarted
+    publisher sending again what it had sent) or ``backwards`` (older than the newest seen on
+    its key and not a recent one: a clock reset, a second plant session on the same keys, a
+    second publisher)."""
+
+    def __init__(self, recent: int = 4096) -> None:
+        self.recent = recent
+        self._lock = threading.Lock()
+        self.last: dict[str, tuple[float, int]] = {}
+        self._seen: dict[str, set[tuple[float, int]]] = {}
+        self._order: dict[str, deque[tuple[float, int]]] = {}
+
+    def check(self, key: str, t: float, seq: int) -> Literal["new", "duplicate", "backwards"]:
+        pos = (float(t), int(seq))
+        with self._lock:
+            seen = self._seen.setdefault(key, set())
+            if pos in seen:
+                return "duplicate"
+            last = self.last.get(key)
+            if last is not None and pos < last:
+                return "backwards"
+            self.last[key] = pos
+            order = self._order.setdefault(key, deque())
+            order.append(pos)
+            seen.add(pos)
+            if len(order) > self.recent:
+                seen.discard(order.popleft())
+            return "new"
 
 
 class Publisher:
@@ -185,10 +301,19 @@ class Publisher:
         self._pub.undeclare()
 
 
+def reject(counters: Counters, warnings: RateLimitedLog, reason: str, text: str) -> None:
+    """Count a rejected message under ``reason``, keep ``text`` as the last error and log it
+    (rate-limited per reason)."""
+    counters.inc(reason)
+    counters.last_error = text[:500]
+    warnings.warn(reason, text)
+
+
 class MessageValidator:
     """Decode and check payloads: JSON, schema (by key or fixed model), time order per key.
 
-    ``check(key, payload)`` returns the message, or None after counting and logging the reason.
+    ``check(key, payload)`` returns the message, or None after counting and logging (rate-limited,
+    :class:`RateLimitedLog`) the reason.
     With ``model=None`` the model is looked up from the key's signal; an unknown signal is
     rejected (``rejected_unknown``) unless ``allow_unknown`` is set, in which case any JSON
     object passes and is returned as a dict.
@@ -202,27 +327,18 @@ class MessageValidator:
         check_time: bool = True,
         allow_unknown: bool = False,
         name: str = "subscriber",
-        log_first: int = 20,
+        warnings: RateLimitedLog | None = None,
     ) -> None:
         self.counters = counters
         self.model = model
         self.check_time = check_time
         self.allow_unknown = allow_unknown
         self.name = name
-        self.log_first = log_first
-        self.last_t: dict[str, float] = {}
-        self._lock = threading.Lock()
-        self._logged = 0
+        self.warnings = warnings or RateLimitedLog()
+        self.order = StreamOrder()
 
     def _reject(self, reason: str, key: str, detail: str) -> None:
-        self.counters.inc(reason)
-        text = f"{self.name}: {reason} on {key}: {detail}"
-        self.counters.last_error = text[:500]
-        if self._logged < self.log_first:
-            log.warning("%s", text)
-            self._logged += 1
-            if self._logged == self.log_first:
-                log.warning("%s: further rejections are counted, not logged", self.name)
+        reject(self.counters, self.warnings, reason, f"{self.name}: {reason} on {key}: {detail}")
 
     def check(self, key: str, payload: bytes) -> Message | dict[str, Any] | None:
         model = self.model or keys_mod.model_for_key(key)
@@ -255,16 +371,27 @@ class MessageValidator:
             )
             self._reject(reason, key, f"{model.__name__}: {detail}")
             return None
-        if self.check_time:
-            with self._lock:
-                last = self.last_t.get(key)
-                if last is not None and msg.t < last:
-                    self._reject(
-                        "rejected_time", key, f"t went backwards: t={msg.t} < previous {last}"
-                    )
-                    return None
-                self.last_t[key] = msg.t
+        if self.check_time and not self.in_order(key, msg):
+            return None
         return msg
+
+    def in_order(self, key: str, msg: Message) -> bool:
+        """Whether ``msg`` is new on its key (:class:`StreamOrder`): a duplicate is counted
+        (``duplicates``) and dropped, a message going back in time is rejected
+        (``rejected_time``)."""
+        verdict = self.order.check(key, msg.t, msg.seq)
+        if verdict == "new":
+            return True
+        if verdict == "duplicate":
+            self.counters.inc("duplicates")
+            return False
+        t_last, seq_last = self.order.last[key]
+        self._reject(
+            "rejected_time",
+            key,
+            f"t went backwards: t={msg.t} seq={msg.seq} after t={t_last} seq={seq_last}",
+        )
+        return False
 
 
 Callback = Callable[..., None]
@@ -289,6 +416,7 @@ class TypedSubscriber:
         name: str = "subscriber",
         with_payload: bool = False,
         key_counts: Counters | None = None,
+        warnings: RateLimitedLog | None = None,
     ) -> None:
         self.key_expr = key_expr
         self.with_payload = with_payload
@@ -300,6 +428,7 @@ class TypedSubscriber:
             check_time=check_time,
             allow_unknown=allow_unknown,
             name=name,
+            warnings=warnings,
         )
         self._callback = callback
         self._sub = session.declare_subscriber(
@@ -419,10 +548,13 @@ class HistorySubscriber:
         model: type[Message] | None = None,
         name: str = "subscriber",
         key_counts: Counters | None = None,
+        warnings: RateLimitedLog | None = None,
     ) -> None:
-        # time order is restored by the service's catch-up sort and per-stream de-duplication:
-        # history may arrive after the first live samples
-        self.validator = MessageValidator(counters, model=model, name=name, check_time=False)
+        # time order is restored by the service's catch-up sort and checked after it
+        # (``services.service.Service``): history may arrive after the first live samples
+        self.validator = MessageValidator(
+            counters, model=model, name=name, check_time=False, warnings=warnings
+        )
         self.counters = counters
         self.key_counts = key_counts if key_counts is not None else Counters()
         self._sink = sink

@@ -58,6 +58,10 @@ def to_message(f: Finding, line: str, seq: int) -> ModelFinding:
 class CloseLoopService(Service):
     """See the module docstring."""
 
+    #: inputs in plant-time order whatever their arrival, up to two publisher heartbeats late
+    #: (``services.service.Service``): the findings are a function of the plant data only
+    reorder_s = 1.0
+
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
         super().__init__("closeloop", spec=spec, **kwargs)
         c = spec.closeloop

@@ -10,12 +10,19 @@ session closed). Use it as a context manager, or :meth:`Service.serve`.
 A service of the live twin (built with ``spec=``, a :class:`~schemas.line.LineSpec`) declares
 history publishers and subscribers (``services.bus``; the cache size and zenoh express from the
 line) and keeps its restart state in the run's state directory. Its inputs are processed one at
-a time: a (re)started service first collects its inputs (history and live) for at least
-``catchup_s``, until ``catchup_quiet_s`` without input or ``catchup_max_s``, handles them in
-plant-time order, then handles each message in the subscriber's callback under one lock (no
-thread hand-off on the latency path). A service restarted after a crash therefore receives
-everything its upstream published, recomputes its state deterministically, and suppresses the
-outputs it had already published (``services.common.OutputLog``).
+a time: a (re)started service first collects its inputs (history and live) until the history
+query of every subscription has completed (at most ``catchup_max_s``; health state
+``starting`` meanwhile), handles them in plant-time order, then handles each message in the
+subscriber's callback under one lock (no thread hand-off on the latency path). A service
+restarted after a crash therefore receives everything its upstream published, recomputes its
+state deterministically, and suppresses the outputs it had already published
+(``services.common.OutputLog``).
+
+Each input key's messages must come in increasing ``(t, seq)`` (``services.bus.StreamOrder``):
+a message seen again (history, a restarted publisher) is counted in ``duplicates`` and dropped;
+one going back in time on its key (a clock reset, a second plant session replayed into a running
+twin, a second publisher) is rejected (``rejected_time``), logged (rate-limited) and puts the
+service in the health state ``degraded`` for ``degraded_s``.
 
 Subclasses implement :meth:`Service.setup` (declare publishers and subscriptions),
 :meth:`Service.handle` (one validated message), and optionally :meth:`Service.idle` (no input
@@ -24,8 +31,10 @@ for ``idle_s``) and :meth:`Service.finish` (at shutdown).
 
 from __future__ import annotations
 
+import heapq
 import json
 import logging
+import math
 import os
 import queue
 import threading
@@ -45,13 +54,16 @@ from services.bus import (
     Callback,
     Counters,
     HistorySubscriber,
+    MessageValidator,
     Publisher,
+    RateLimitedLog,
     StopFlag,
     TypedSubscriber,
     barrier,
     open_session,
 )
 from services.common import state_dir
+from services.security import service_bus
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +73,8 @@ class Service:
 
     Args:
         name: the service's name (key segment of its health, token and ping).
-        config: the bus session (default: loopback peer); ignored with ``spec``.
+        config: the bus session (default: with ``spec``, the line's client bus as the identity
+            of the environment, ``services.security.service_bus``; else a loopback peer).
         spec: the line of a live-twin service: its client bus, history cache size, zenoh
             express, state directory.
         health_period_s: seconds between health reports (0: only at start and stop).
@@ -69,12 +82,17 @@ class Service:
     """
 
     idle_s: float = 0.2
-    #: catch-up of a (re)started service: inputs (history and live) are collected for at least
-    #: ``catchup_s``, until ``catchup_quiet_s`` without input or ``catchup_max_s``, then handled
-    #: in plant-time order
-    catchup_s: float = 1.0
-    catchup_quiet_s: float = 0.3
+    #: catch-up of a (re)started service: inputs (history and live) are collected until every
+    #: history query has completed, at most ``catchup_max_s``, then handled in plant-time order
     catchup_max_s: float = 10.0
+    #: how long the health state stays ``degraded`` after a rejected message, s (wall)
+    degraded_s: float = 10.0
+    #: wall seconds each input is held before it is handled, in (plant time, key, seq) order, so
+    #: that a message arriving up to that late behind messages of later plant time on other keys
+    #: (another route, a sample recovered on a heartbeat) is still handled in plant-time order:
+    #: the outputs do not depend on arrival order or machine load. 0: handled on arrival (the
+    #: services on the diverter's latency path)
+    reorder_s: float = 0.0
 
     def __init__(
         self,
@@ -87,7 +105,9 @@ class Service:
     ) -> None:
         self.name = name
         self.spec = spec
-        self.config = spec.client_bus() if spec is not None else (config or BusConfig())
+        if config is None:
+            config = service_bus(spec) if spec is not None else BusConfig()
+        self.config = config
         self.line = self.config.line
         self.health_period_s = health_period_s
         self.counters = Counters()
@@ -99,6 +119,15 @@ class Service:
         self.state = "starting"
         self.state_path = state_dir(spec) if spec is not None else Path.cwd()
         self.inbox: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+        self.warnings = RateLimitedLog(log)
+        #: order of the history subscriptions' messages, per key (checked after the catch-up)
+        self.order = MessageValidator(self.counters, name=name, warnings=self.warnings)
+        self._feeds: list[HistorySubscriber] = []
+        self._held: list[tuple[float, str, int, int, float, Any]] = []
+        self._n_held = 0
+        self._degraded_until = -math.inf
+        #: why the service refuses its input (None: it does not), see :meth:`refuse`
+        self.refusal: str | None = None
         self._hlock = threading.RLock()
         self._direct = False
         self._active = False
@@ -197,16 +226,9 @@ class Service:
         a lock; call :meth:`idle` after ``idle_s`` without input; return at stop or timeout."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         self._catch_up()
-        with self._hlock:
-            while True:  # what arrived during the catch-up, then switch to direct handling
-                try:
-                    key, msg = self.inbox.get_nowait()
-                except queue.Empty:
-                    break
-                self._safe_handle(key, msg)
-            self._direct = True
         while not self.stop_flag.wait(self.idle_s):
             with self._hlock:
+                self._release(time.monotonic())
                 if not self._active:
                     self.idle()
                 self._active = False
@@ -277,6 +299,7 @@ class Service:
             name=self.name,
             with_payload=with_payload,
             key_counts=self.key_counts,
+            warnings=self.warnings,
         )
         self._entities.append(sub)
         return sub
@@ -292,8 +315,10 @@ class Service:
             model=model,
             name=self.name,
             key_counts=self.key_counts,
+            warnings=self.warnings,
         )
         self._entities.append(sub)
+        self._feeds.append(sub)
 
     def _advance(self, msg: Any) -> None:
         t = getattr(msg, "t", None)
@@ -304,13 +329,36 @@ class Service:
         self._advance(msg)
         if self._direct:
             with self._hlock:
-                self._safe_handle(key, msg)
+                self._admit(key, msg)
             return
         with self._hlock:
             if self._direct:
-                self._safe_handle(key, msg)
+                self._admit(key, msg)
             else:
                 self.inbox.put((key, msg))
+
+    def _admit(self, key: str, msg: Any) -> None:
+        """Handle a message that is new on its key (duplicates dropped, time going backwards
+        rejected: ``services.bus.MessageValidator.in_order``), after ``reorder_s``."""
+        if not self.order.in_order(key, msg):
+            if self.counters.get("rejected_time"):
+                self._degraded_until = time.monotonic() + self.degraded_s
+            return
+        if self.reorder_s <= 0:
+            self._safe_handle(key, msg)
+            return
+        now = time.monotonic()
+        self._n_held += 1
+        heapq.heappush(self._held, (float(msg.t), key, int(msg.seq), self._n_held, now, msg))
+        self._release(now)
+
+    def _release(self, now: float) -> None:
+        """Handle the held messages that have waited ``reorder_s``, in plant-time order (one
+        that has not waited long enough holds back those of later plant time)."""
+        held = self._held
+        while held and now - held[0][4] >= self.reorder_s:
+            _, key, _, _, _, msg = heapq.heappop(held)
+            self._safe_handle(key, msg)
 
     def _safe_handle(self, key: str, msg: Any) -> None:
         self._active = True
@@ -321,45 +369,65 @@ class Service:
             self.counters.last_error = f"{type(exc).__name__}: {exc}"[:500]
             log.exception("%s: handling %s failed", self.name, key)
 
+    def _history_complete(self, deadline: float) -> bool:
+        """Wait until every history query has completed (or the deadline, or a stop)."""
+        for sub in self._feeds:
+            while not sub.feed.history_complete.wait(0.05):
+                if self.stopping or time.monotonic() >= deadline:
+                    return False
+        return True
+
     def _catch_up(self) -> None:
-        """Collect inputs (history and live) for at least ``catchup_s``, until the inbox has been
-        quiet for ``catchup_quiet_s`` (history delivered) or ``catchup_max_s`` has passed, then
-        handle them sorted by plant time."""
-        t0 = time.monotonic()
-        batch: list[tuple[float, int, str, Any]] = []
-        while not self.stopping:
-            now = time.monotonic()
-            if now - t0 >= self.catchup_max_s:
-                break
-            wait = self.catchup_quiet_s
-            if now - t0 < self.catchup_s:
-                wait = max(wait, self.catchup_s - (now - t0))
-            try:
-                key, msg = self.inbox.get(timeout=wait)
-            except queue.Empty:
-                if time.monotonic() - t0 >= self.catchup_s:
-                    break
-                continue
-            batch.append((float(getattr(msg, "t", 0.0)), len(batch), key, msg))
-        batch.sort(key=lambda x: (x[0], x[1]))
-        self.counters.inc("caught_up", len(batch))
+        """Collect inputs (history and live) until every history query has completed (at most
+        ``catchup_max_s``), then handle them sorted by plant time (key and ``seq`` break ties,
+        so the order does not depend on arrival) and switch to direct handling."""
+        self.state = "starting"
+        if not self._history_complete(time.monotonic() + self.catchup_max_s):
+            if not self.stopping:
+                self.counters.inc("catchup_timeouts")
+                log.warning(
+                    "%s: history incomplete after %.0f s; going on with what came",
+                    self.name,
+                    self.catchup_max_s,
+                )
         with self._hlock:
-            for _, _, key, msg in batch:
-                self._safe_handle(key, msg)
+            batch: list[tuple[float, str, int, Any]] = []
+            while True:
+                try:
+                    key, msg = self.inbox.get_nowait()
+                except queue.Empty:
+                    break
+                batch.append((float(getattr(msg, "t", 0.0)), key, int(getattr(msg, "seq", 0)), msg))
+            batch.sort(key=lambda x: x[:3])
+            self.counters.inc("caught_up", len(batch))
+            for _, key, _, msg in batch:
+                self._admit(key, msg)
+            self._direct = True
+            self.state = "running"
+
+    def refuse(self, reason: str) -> None:
+        """The service refuses its input for ``reason``: logged as an error, its health is
+        ``degraded`` with the reason as its last error from now on."""
+        if self.refusal is None:
+            self.refusal = reason
+            log.error("%s: %s", self.name, reason)
 
     # -- health ----------------------------------------------------------------------------
     def health(self) -> ServiceHealth:
         assert self._health_pub is not None
+        state = self.state
+        if state == "running" and (self.refusal or time.monotonic() < self._degraded_until):
+            state = "degraded"
         return ServiceHealth(
             t=self.plant_time_s,
             seq=self._health_pub.seq,
             service=self.name,
-            state=self.state,
+            state=state,
             pid=os.getpid(),
             uptime_s=time.monotonic() - self._t0,
             wall_time_unix_s=time.time(),
             counters=self.counters.snapshot(),
-            last_error=self.counters.last_error,
+            last_error=(self.refusal or self.counters.last_error or "")[:500] or None,
         )
 
     def drain(self, timeout_s: float = 10.0, **kwargs: Any) -> list[ServiceHealth]:
