@@ -8,12 +8,49 @@ is open). ``--config`` takes the line YAML/JSON; the run's state directory comes
 from __future__ import annotations
 
 import argparse
+import ctypes
 import logging
+import os
+import signal
 import sys
+import threading
+import time
 
 from schemas.line import LineSpec
 
 log = logging.getLogger("services.runner")
+
+#: environment variable naming the supervisor's pid (``services.supervisor``)
+SUPERVISOR_PID_ENV = "TWIN_SUPERVISOR_PID"
+#: Linux prctl option: the signal this process gets when its parent thread dies
+PR_SET_PDEATHSIG = 1
+#: seconds between checks of the parent process; and the grace of a clean stop after it died
+PARENT_CHECK_S = 0.5
+STOP_GRACE_S = 10.0
+
+
+def die_with_parent(parent: int) -> None:
+    """Stop when the supervisor ``parent`` dies, however it dies (SIGKILL included): SIGTERM
+    from the kernel on Linux (``prctl(PR_SET_PDEATHSIG)``), and on any system a thread that
+    watches the parent process (its pid changes when it dies) and sends SIGTERM, then exits
+    hard after ``STOP_GRACE_S`` if the clean stop hangs."""
+    if sys.platform.startswith("linux"):
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0) != 0:
+            log.warning("prctl(PR_SET_PDEATHSIG) failed: errno %d", ctypes.get_errno())
+    if os.getppid() != parent:  # the parent died before the signal was armed
+        log.error("supervisor (pid %d) is gone: exiting", parent)
+        sys.exit(3)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_CHECK_S)
+        log.error("supervisor (pid %d) is gone: stopping", parent)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(STOP_GRACE_S)
+        os._exit(3)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 def make_service(name: str, spec: LineSpec, **kwargs):
@@ -60,6 +97,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=a.log_level, format=f"%(asctime)s {a.name}[%(process)d] %(levelname)s %(message)s"
     )
+    parent = os.environ.get(SUPERVISOR_PID_ENV)
+    if parent:
+        die_with_parent(int(parent))
     spec = LineSpec.from_file(a.config)
     svc = make_service(a.name, spec)
     return svc.serve()

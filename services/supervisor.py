@@ -5,12 +5,28 @@ process, starts each configured service as a separate interpreter
 (``python -m services.runner NAME``; no fork of a process with zenoh open), watches the
 processes and their liveliness tokens (``twin/<line>/service/<name>/alive``), kills a service
 whose token has been gone for ``liveliness_timeout_s`` while its process runs (hung, or cut off
-from the router), restarts a service that exits with exponential backoff (``backoff_s`` doubling up to ``max_backoff_s``, reset after
-``stable_s`` of uptime), and on :meth:`stop` (SIGINT/SIGTERM in ``twin up``) sends SIGTERM to all,
-waits ``stop_timeout_s``, kills what remains and closes the router.
+from the router), restarts a service that exits with exponential backoff (``backoff_s``
+doubling up to ``max_backoff_s``, reset after ``stable_s`` of uptime), and on :meth:`stop`
+(SIGINT/SIGTERM in ``twin up``) sends SIGTERM to all, waits ``stop_timeout_s``, kills what
+remains and closes the router.
+
+Secure by default (``secure=True``, ``services.security``): per-run credentials for every
+service and tool, the router accepting only them, and an access control where each identity
+publishes only its own outputs (the diverter alone its alerts and divert commands, the plant
+alone the plant inputs). ``secure=False`` (``twin up --insecure``) is the open bus.
+
+One twin per line and state directory: the run lock ``<state_dir>/twin-<line>.lock``
+(``services.common.RunLock``, released by the kernel if ``twin up`` dies) holds the run's
+:class:`~services.common.RunInfo` for the tools. :meth:`start` refuses, with a one-line
+RuntimeError, a second ``twin up`` of the line, a router endpoint already in use, and service
+processes of an earlier run still running. No service outlives its supervisor: a service dies
+with it (``services.runner``: Linux parent-death signal, and a watch of its parent process as a
+fallback), and every service is started, and stopped, by the supervisor's watcher thread (the
+parent-death signal follows the thread that started a process).
 
 Each ``twin up`` gets a fresh run directory ``<state_dir>/run-<time>-<pid>`` (``$TWIN_STATE_DIR``
-of the services: restart state and output logs; ``<name>.log``: each service's output).
+of the services: restart state and output logs; ``<name>.log``: each service's output;
+``<name>.pid``: its process; ``line.json``: the configuration, no password).
 """
 
 from __future__ import annotations
@@ -18,6 +34,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -29,10 +46,29 @@ from typing import Any
 import zenoh
 
 from schemas import keys
+from schemas.bus_config import BusConfig
 from schemas.line import LineSpec
 from schemas.messages import ServiceHealth
 from services.bus import Publisher, open_session
-from services.common import STATE_ENV
+from services.common import (
+    STATE_ENV,
+    RunInfo,
+    RunLock,
+    live_service_processes,
+    lock_path,
+    write_pid,
+)
+from services.runner import SUPERVISOR_PID_ENV
+from services.security import (
+    PASSWORD_ENV,
+    PASSWORD_FILE_ENV,
+    TOOL_IDENTITIES,
+    USER_ENV,
+    RouterDictionary,
+    RunCredentials,
+    as_identity,
+    secured_router,
+)
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +90,24 @@ class Child:
     exit_codes: list[int] = field(default_factory=list)
 
 
+def busy_endpoints(endpoints: list[str]) -> list[str]:
+    """The TCP endpoints (``tcp/<host>:<port>``) on which a listener cannot bind now."""
+    busy = []
+    for ep in endpoints:
+        proto, _, addr = ep.partition("/")
+        if proto not in ("tcp", "tls"):
+            continue
+        host, _, port = addr.rpartition(":")
+        host = host.strip("[]")
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            try:
+                s.bind((host, int(port)))
+            except OSError:
+                busy.append(ep)
+    return busy
+
+
 class Supervisor:
     """Starts, watches and stops the services of a line (see the module docstring)."""
 
@@ -63,6 +117,7 @@ class Supervisor:
         *,
         services: list[str] | None = None,
         run_dir: Path | None = None,
+        secure: bool = True,
         backoff_s: float = 0.5,
         max_backoff_s: float = 10.0,
         stable_s: float = 30.0,
@@ -78,6 +133,7 @@ class Supervisor:
         self.names = names
         stamp = time.strftime("%Y%m%dT%H%M%S")
         self.run_dir = run_dir or Path(spec.state_dir) / f"run-{stamp}-{os.getpid()}"
+        self.secure = secure
         self.backoff_s = backoff_s
         self.max_backoff_s = max_backoff_s
         self.stable_s = stable_s
@@ -88,34 +144,97 @@ class Supervisor:
         self.alive: set[str] = set()
         self._recheck = False
         self.session: zenoh.Session | None = None
+        self.creds: RunCredentials | None = None
+        self._dictionary: RouterDictionary | None = None
+        self._lock_file = RunLock(lock_path(spec))
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._liveliness: Any = None
+        self.codes: dict[str, int | None] = {}
         self.config_path = self.run_dir / "line.json"
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> Supervisor:
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        self.spec.to_file(self.config_path)
-        self.session = open_session(self.spec.router_bus())
+        """Take the run lock, check the endpoints and earlier services, open the router and
+        start the services; a one-line RuntimeError says why it cannot."""
+        spec = self.spec
+        info = RunInfo(
+            os.getpid(), str(self.run_dir), spec.name, list(spec.bus.listen), self.secure
+        )
+        self._lock_file.acquire(info)
+        try:
+            self._check_free()
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            spec.to_file(self.config_path)
+            self._open_router()
+        except BaseException:
+            self._close_security()
+            self._lock_file.release()
+            raise
+        self._t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._watch, name="supervisor", daemon=True)
+        self._thread.start()
+        return self
+
+    def _check_free(self) -> None:
+        old = live_service_processes(Path(self.spec.state_dir), self.spec.name)
+        if old:
+            pids = " ".join(str(p) for p in sorted(old))
+            raise RuntimeError(
+                f"services of an earlier run still run, pids {pids} ({sorted(old.values())[0]}"
+                f"{' ...' if len(old) > 1 else ''}); stop them first (kill {pids})"
+            )
+        busy = busy_endpoints(list(self.spec.bus.listen))
+        if busy:
+            raise RuntimeError(
+                f"the router's endpoint is in use (another twin or program), bus.listen: "
+                f"{', '.join(busy)}"
+            )
+
+    def _open_router(self) -> None:
+        spec = self.spec
+        bus = spec.router_bus()
+        if self.secure:
+            identities = [*self.names, *TOOL_IDENTITIES]
+            self.creds = RunCredentials.generate(identities)
+            self.creds.write_tool_files(self.run_dir)
+            self._dictionary = RouterDictionary(self.creds, self.run_dir)
+            bus = secured_router(bus, spec, identities, self._dictionary.path)
+        try:
+            self.session = open_session(bus)
+        except zenoh.ZError as exc:
+            raise RuntimeError(
+                f"cannot open the router, bus.listen: {', '.join(spec.bus.listen)}: {exc}"
+            ) from None
+        if self._dictionary is not None:
+            self._dictionary.router_opened()
         self._liveliness = self.session.liveliness().declare_subscriber(
-            keys.services_alive(self.spec.name),
+            keys.services_alive(spec.name),
             zenoh.handlers.Callback(self._on_alive, lambda: None),
             history=True,
         )
         self._token = self.session.liveliness().declare_token(
-            keys.service_alive(self.spec.name, "supervisor")
+            keys.service_alive(spec.name, "supervisor")
         )
         self._health = Publisher(
-            self.session, keys.service_health(self.spec.name, "supervisor"), ServiceHealth
+            self.session, keys.service_health(spec.name, "supervisor"), ServiceHealth
         )
-        self._t0 = time.monotonic()
-        for child in self.children.values():
-            self._spawn(child)
-        self._thread = threading.Thread(target=self._watch, name="supervisor", daemon=True)
-        self._thread.start()
-        return self
+
+    def _close_security(self) -> None:
+        if self._dictionary is not None:
+            self._dictionary.close()
+            self._dictionary = None
+
+    def client_config(self, identity: str = "operator") -> BusConfig:
+        """The bus of a tool of this run (``plant`` or ``operator``): a client of the router
+        presenting that identity's credentials (none on an insecure bus)."""
+        bus = self.spec.client_bus()
+        if not self.secure:
+            return bus
+        if identity not in TOOL_IDENTITIES:
+            raise ValueError(f"identity must be one of {TOOL_IDENTITIES}, got {identity!r}")
+        return as_identity(bus, identity, password_file=self.run_dir / "credentials" / identity)
 
     def __enter__(self) -> Supervisor:
         return self.start()
@@ -147,9 +266,19 @@ class Supervisor:
             self.alive = names
         return names
 
-    def _spawn(self, child: Child) -> None:
+    def _child_env(self, name: str) -> dict[str, str]:
         env = dict(os.environ)
         env[STATE_ENV] = str(self.run_dir)
+        env[SUPERVISOR_PID_ENV] = str(os.getpid())
+        for var in (USER_ENV, PASSWORD_ENV, PASSWORD_FILE_ENV):
+            env.pop(var, None)
+        if self.creds is not None:
+            env[USER_ENV] = name
+            env[PASSWORD_ENV] = self.creds.passwords[name]
+        return env
+
+    def _spawn(self, child: Child) -> None:
+        """Start a service (from the watcher thread only: see the module docstring)."""
         logf = (self.run_dir / f"{child.name}.log").open("ab")
         cmd = [
             sys.executable,
@@ -162,9 +291,14 @@ class Supervisor:
             self.log_level,
         ]
         child.proc = subprocess.Popen(
-            cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, start_new_session=True
+            cmd,
+            stdout=logf,
+            stderr=subprocess.STDOUT,
+            env=self._child_env(child.name),
+            start_new_session=True,
         )
         logf.close()
+        write_pid(self.run_dir, child.name, child.proc.pid)
         child.started_at = time.monotonic()
         log.info("started %s (pid %d)", child.name, child.proc.pid)
 
@@ -214,7 +348,36 @@ class Supervisor:
             p.kill()
             child.lost_since = None
 
+    def _reap(self, child: Child, now: float) -> None:
+        """Note a service that exited and schedule its restart (exponential backoff)."""
+        p = child.proc
+        if p is None or p.poll() is None:
+            return
+        child.exit_codes.append(p.returncode)
+        up = now - child.started_at
+        if up >= self.stable_s:
+            child.backoff_s = 0.0
+        child.backoff_s = (
+            self.backoff_s
+            if child.backoff_s == 0.0
+            else min(2 * child.backoff_s, self.max_backoff_s)
+        )
+        child.next_start = now + child.backoff_s
+        child.proc = None
+        child.seen_alive = False
+        log.warning(
+            "%s exited with %s after %.1f s; restart in %.1f s",
+            child.name,
+            p.returncode,
+            up,
+            child.backoff_s,
+        )
+
     def _watch(self) -> None:
+        """Start the services, watch them until :meth:`stop`, then stop them (this thread
+        started them all: their parent-death signal is tied to it)."""
+        for child in self.children.values():
+            self._spawn(child)
         last_health = 0.0
         while not self._stop.wait(0.1):
             now = time.monotonic()
@@ -233,30 +396,29 @@ class Supervisor:
                 except Exception as exc:  # noqa: BLE001 - health must not stop supervision
                     log.debug("supervisor health not sent: %s", exc)
             for child in self.children.values():
-                p = child.proc
-                if p is not None and p.poll() is not None:
-                    child.exit_codes.append(p.returncode)
-                    up = now - child.started_at
-                    if up >= self.stable_s:
-                        child.backoff_s = 0.0
-                    child.backoff_s = (
-                        self.backoff_s
-                        if child.backoff_s == 0.0
-                        else min(2 * child.backoff_s, self.max_backoff_s)
-                    )
-                    child.next_start = now + child.backoff_s
-                    child.proc = None
-                    child.seen_alive = False
-                    log.warning(
-                        "%s exited with %s after %.1f s; restart in %.1f s",
-                        child.name,
-                        p.returncode,
-                        up,
-                        child.backoff_s,
-                    )
+                self._reap(child, now)
                 if child.proc is None and now >= child.next_start and not self._stop.is_set():
                     child.restarts += 1
                     self._spawn(child)
+        self.codes = self._stop_children()
+
+    def _stop_children(self) -> dict[str, int | None]:
+        """SIGTERM every service, wait ``stop_timeout_s``, SIGKILL what remains; exit codes."""
+        procs = {n: c.proc for n, c in self.children.items() if c.proc is not None}
+        for p in procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + self.stop_timeout_s
+        codes: dict[str, int | None] = {}
+        for n, p in procs.items():
+            try:
+                codes[n] = p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop in %.1f s: killing", n, self.stop_timeout_s)
+                p.kill()
+                codes[n] = p.wait()
+            (self.run_dir / f"{n}.pid").unlink(missing_ok=True)
+        return codes
 
     def wait_ready(self, timeout_s: float = 60.0) -> bool:
         """Wait until every service's liveliness token is alive."""
@@ -272,26 +434,16 @@ class Supervisor:
         return {n: (c.proc.pid if c.proc else None) for n, c in self.children.items()}
 
     def stop(self) -> dict[str, int | None]:
-        """SIGTERM every service, wait, SIGKILL what remains, close the router; exit codes."""
+        """Stop the services (the watcher thread: SIGTERM, wait, SIGKILL what remains), close
+        the router, release the run lock; return the services' exit codes."""
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        procs = {n: c.proc for n, c in self.children.items() if c.proc is not None}
-        for p in procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + self.stop_timeout_s
-        codes: dict[str, int | None] = {}
-        for n, p in procs.items():
-            try:
-                codes[n] = p.wait(timeout=max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                log.warning("%s did not stop in %.1f s: killing", n, self.stop_timeout_s)
-                p.kill()
-                codes[n] = p.wait()
+            self._thread.join(timeout=self.stop_timeout_s + 30.0)
         if self.session is not None and not self.session.is_closed():
             if self._liveliness is not None:
                 self._liveliness.undeclare()
             self._token.undeclare()
             self.session.close()
-        return codes
+        self._close_security()
+        self._lock_file.release()
+        return self.codes

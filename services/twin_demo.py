@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from schemas import keys
+from schemas.bus_config import BusConfig
 from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import (
@@ -102,7 +103,7 @@ def expected_findings(spec: LineSpec, t_first: float, t_last: float) -> int:
 class _Tap:
     """Test-side view of the bus: everything the report needs."""
 
-    def __init__(self, spec: LineSpec, echo: bool) -> None:
+    def __init__(self, spec: LineSpec, echo: bool, bus: BusConfig) -> None:
         import zenoh
 
         self.lock = threading.Lock()
@@ -115,7 +116,7 @@ class _Tap:
         self.meas: dict[float, float] = {}
         self.alert_wall: dict[str, float] = {}
         self.duplicates = 0
-        self.session = open_session(spec.client_bus())
+        self.session = open_session(bus)
         comp = spec.sensor.component
         line = spec.name
 
@@ -238,10 +239,14 @@ def _run_twin(
         if not sup.wait_ready(90):
             raise RuntimeError(f"services not ready after 90 s: alive {sorted(sup.alive)}")
         timings["startup_s"] = time.perf_counter() - t0
-        tap = _Tap(spec, echo)
-        time.sleep(1.5)  # past the services' catch-up (>= 1 s after their token)
+        tap = _Tap(spec, echo, sup.client_config("operator"))
         with BusReplay(
-            rec, spec=spec, settle_s=0.5, service_name="plant", install_signal_handlers=False
+            rec,
+            sup.client_config("plant"),
+            spec=spec,
+            settle_s=0.5,
+            service_name="plant",
+            install_signal_handlers=False,
         ) as rp:
             stats = rp.replay(
                 speed=speed if math.isfinite(speed) else 1.0,

@@ -75,7 +75,7 @@ def live(tmp_path_factory):
     sup = Supervisor(spec, backoff_s=0.2).start()
     try:
         assert sup.wait_ready(120), f"services not ready: alive {sup.alive}"
-        with open_session(spec.client_bus()) as s:
+        with open_session(sup.client_config("operator")) as s:
             subs = [
                 HistoryFeed(s, keys.model_finding(spec.name), on_finding),
                 HistoryFeed(s, keys.services_health(spec.name), on_health),
@@ -100,7 +100,12 @@ def live(tmp_path_factory):
 
             held = threading.Event()
             with BusReplay(
-                rec, spec=spec, settle_s=0.5, service_name="plant", install_signal_handlers=False
+                rec,
+                sup.client_config("plant"),
+                spec=spec,
+                settle_s=0.5,
+                service_name="plant",
+                install_signal_handlers=False,
             ) as rp:
                 rp.replay(speed=200.0, hold=wait_for_adoption)
                 end = time.monotonic() + 90

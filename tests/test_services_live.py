@@ -53,15 +53,16 @@ def make_spec(port: int, state: Path, services: list[str]) -> LineSpec:
 
 
 class Collector:
-    """Every alert / divert / health message seen by a test-side subscriber (duplicates kept)."""
+    """Every alert / divert / health message seen by a test-side subscriber (duplicates kept),
+    as the run's operator."""
 
-    def __init__(self, spec: LineSpec) -> None:
+    def __init__(self, sup: Supervisor) -> None:
         self.alerts: list[OosAlert] = []
         self.diverts: list[DivertCommand] = []
         self.health: dict[str, ServiceHealth] = {}
         self.lock = threading.Lock()
-        self.session = open_session(spec.client_bus())
-        line = spec.name
+        self.session = open_session(sup.client_config("operator"))
+        line = sup.spec.name
         self.subs = [
             self.session.declare_subscriber(keys.oos_alert(line), self._cb(OosAlert)),
             self.session.declare_subscriber(keys.divert_command(line), self._cb(DivertCommand)),
@@ -87,11 +88,16 @@ class Collector:
         self.session.close()
 
 
-def plant_replay(spec: LineSpec, rec) -> BusReplay:
-    """The virtual plant replaying ``rec`` into the twin of ``spec`` (as ``twin replay
-    --config``)."""
+def plant_replay(sup: Supervisor, rec) -> BusReplay:
+    """The virtual plant replaying ``rec`` into the twin of ``sup`` (as ``twin replay
+    --config``, with the run's plant credentials)."""
     return BusReplay(
-        rec, spec=spec, settle_s=0.5, service_name="plant", install_signal_handlers=False
+        rec,
+        sup.client_config("plant"),
+        spec=sup.spec,
+        settle_s=0.5,
+        service_name="plant",
+        install_signal_handlers=False,
     )
 
 
@@ -117,9 +123,8 @@ def run_a(tmp_path_factory):
     col = None
     try:
         assert sup.wait_ready(120), f"services not ready: alive {sup.alive}"
-        col = Collector(spec)
-        time.sleep(1.5)  # past the services' catch-up (>= 1 s after their token)
-        with plant_replay(spec, rec) as rp:
+        col = Collector(sup)
+        with plant_replay(sup, rec) as rp:
             killer_done = threading.Event()
 
             def kill_oos() -> None:
@@ -231,9 +236,8 @@ def run_b(tmp_path_factory):
     col = None
     try:
         assert sup.wait_ready(120)
-        col = Collector(spec)
-        time.sleep(1.5)  # past the services' catch-up
-        with plant_replay(spec, rec) as rp:
+        col = Collector(sup)
+        with plant_replay(sup, rec) as rp:
             out["n_sent"] = rp.replay(as_fast_as_possible=True).published
             assert wait_until(
                 lambda: "oos" in col.health and col.health["oos"].t >= rec.messages[-1].t - 1, 60

@@ -80,7 +80,7 @@ def test_a_dead_model_does_not_block_measured_oos_decisions(tmp_path):
     sup = Supervisor(spec, services=["oos"]).start()  # no blender
     try:
         assert sup.wait_ready(120)
-        s = open_session(spec.client_bus())
+        s = open_session(sup.client_config("operator"))
 
         def on_alert(sample: zenoh.Sample) -> None:
             with lock:
@@ -101,9 +101,13 @@ def test_a_dead_model_does_not_block_measured_oos_decisions(tmp_path):
                 zenoh.handlers.Callback(on_health, lambda: None),
             ),
         ]
-        time.sleep(1.5)  # past the catch-up
         with BusReplay(
-            rec, spec=spec, settle_s=0.5, service_name="plant", install_signal_handlers=False
+            rec,
+            sup.client_config("plant"),
+            spec=spec,
+            settle_s=0.5,
+            service_name="plant",
+            install_signal_handlers=False,
         ) as rp:
             rp.replay(speed=90.0)
             t_end = time.monotonic()

@@ -7,6 +7,7 @@ import argparse
 import json
 import logging
 import signal
+import sys
 import threading
 import time
 from pathlib import Path
@@ -21,6 +22,24 @@ def _spec(args: argparse.Namespace):
     from schemas.line import LineSpec
 
     return LineSpec.from_file(args.config or DEFAULT_CONFIG)
+
+
+def _tool_session(spec, identity: str = "operator"):
+    """A session on the line's bus as a tool (``services.security.tool_bus``); a bus that
+    cannot be reached is a one-line error naming the endpoint."""
+    import zenoh
+
+    from services.bus import open_session
+    from services.security import tool_bus
+
+    bus = tool_bus(spec, identity)
+    try:
+        return open_session(bus)
+    except zenoh.ZError:
+        raise RuntimeError(
+            f"no twin of line {spec.name} answers (is `twin up` running?), bus.connect: "
+            f"{', '.join(bus.connect)}"
+        ) from None
 
 
 def _wait_for_signal() -> None:
@@ -43,8 +62,26 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     spec = _spec(args)
     services = args.services.split(",") if args.services else None
-    sup = Supervisor(spec, services=services, log_level="DEBUG" if args.verbose else "INFO")
+    sup = Supervisor(
+        spec,
+        services=services,
+        secure=not args.insecure,
+        log_level="DEBUG" if args.verbose else "INFO",
+    )
     sup.start()
+    if args.insecure:
+        print(
+            f"twin up: warning: open bus (--insecure): whoever reaches "
+            f"{', '.join(spec.bus.listen)} may publish plant inputs and divert commands",
+            file=sys.stderr,
+            flush=True,
+        )
+    else:
+        print(
+            f"twin up: bus secured: per-run credentials and access control; the tools' "
+            f"credentials are in {sup.run_dir / 'credentials'} (mode 0600)",
+            flush=True,
+        )
     ok = sup.wait_ready(args.ready_timeout)
     print(
         f"twin up: line {spec.name}, router {', '.join(spec.bus.listen)}, services "
@@ -60,11 +97,11 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from services.bus import collect_health, open_session
+    from services.bus import collect_health
     from services.common import status_rows, status_table
 
     spec = _spec(args)
-    with open_session(spec.client_bus()) as s:
+    with _tool_session(spec) as s:
         alive, health = collect_health(s, spec.name, args.timeout)
     rows = status_rows(alive, health)
     if args.json:
@@ -78,7 +115,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_alerts(args: argparse.Namespace) -> int:
-    from services.bus import AlertFeed, open_session
+    from services.bus import AlertFeed
     from services.common import format_alert
 
     spec = _spec(args)
@@ -89,7 +126,7 @@ def cmd_alerts(args: argparse.Namespace) -> int:
         else:
             print(format_alert(msg), flush=True)
 
-    with open_session(spec.client_bus()) as s:
+    with _tool_session(spec) as s:
         feed = AlertFeed(s, spec.name, emit, divert=args.divert, count=args.count)
         if args.timeout or args.count:
             feed.done.wait(args.timeout or None)
@@ -136,6 +173,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     config_arg(p)
     p.add_argument("--services", help="comma-separated subset (default: the config's list)")
     p.add_argument("--ready-timeout", type=float, default=60.0)
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="an open bus: no credentials, no access control (default: per-run credentials "
+        "and an access control where only the diverter may divert)",
+    )
     p.set_defaults(func=cmd_up)
 
     p = subparsers.add_parser("status", help="liveliness and health of the running services")
