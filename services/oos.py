@@ -20,6 +20,13 @@ back for at most ``oos.stall_release_s`` wall seconds, then made on the streams 
 reached its time, or after ``idle_release_s`` of silence. Restart: inputs come back from the
 publishers' history, the decisions are recomputed, and outputs already published (ids in the
 run's output log) are not sent again.
+
+The diverter decides only on the line it is configured for: the first flow of each feeder and
+the first measurement are checked against the configuration (``twin_core.online.feed``:
+feeders, components, set points, sensor). On a mismatch it refuses the feed before any
+decision: it logs the mismatch as an error, counts every message after it (``rejected_mismatch``)
+instead of deciding on it, and reports ``degraded`` with the mismatch as its last error (``twin
+status``), until it is restarted with a configuration that matches.
 """
 
 from __future__ import annotations
@@ -43,6 +50,7 @@ from schemas.messages import (
 from services.common import OutputLog
 from services.service import Service
 from twin_core.online.diverter import DiverterOutput
+from twin_core.online.feed import FeedCheck
 from twin_core.online.inlet import event_record
 from twin_core.online.oos import OosCore
 
@@ -89,6 +97,7 @@ class OosService(Service):
         # 0.5 s miss-detection heartbeat) must still find its inlet tick unreleased
         self.core.inlet_grace_s = self.inlet_grace_s
         self.log_ids = OutputLog(self.state_path / "oos.published")
+        self.feed = FeedCheck(spec)
         self._idle = 0.0
 
     def setup(self) -> None:
@@ -109,8 +118,28 @@ class OosService(Service):
         if b.adopt_findings:
             self.history_subscribe(keys.model_finding(line), ModelFinding)
 
+    def _check_feed(self, key: str, msg: Any) -> bool:
+        """Whether the feed matches the configuration (module docstring); refuse it if not."""
+        found = []
+        if isinstance(msg, FeederFlow):
+            found = self.feed.flow(keys.parse_key(key).id, msg.component, msg.setpoint_kg_h)
+        elif isinstance(msg, MeasuredConcentration):
+            found = self.feed.measured(msg.sensor, msg.component)
+        if found:
+            self.refuse(
+                "the feed does not match the line configuration: "
+                + "; ".join(str(x) for x in found)
+                + " (no decision on it; restart the twin with the line's configuration)"
+            )
+        if self.feed.mismatches and isinstance(msg, (FeederFlow, MeasuredConcentration)):
+            self.counters.inc("rejected_mismatch")
+            return False
+        return True
+
     def handle(self, key: str, msg: Any) -> None:
         self._idle = 0.0
+        if not self._check_feed(key, msg):
+            return
         outs = self._decide(key, msg)
         if outs is None:
             return
