@@ -7,9 +7,9 @@ units in field names. Payloads are the compact JSON of the model (``Message.to_j
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, StringConstraints, model_validator
 
 from schemas.base import Finite, Fraction, Ident, Message, NonNegative, Positive, Text
 
@@ -120,6 +120,21 @@ class RtdEstimate(Message):
         return self
 
 
+class RtdSkipped(Message):
+    """A tracer pulse the rtd service found but did not turn into an estimate, and why. Key:
+    ``twin/<line>/rtd/skipped``.
+
+    ``reason``: ``fit_failed`` (the fit raised: ``detail`` says why) or ``skipped_disturbance``
+    (a pulse found by itself while a known feeder disturbance or refill could reach the outlet).
+    """
+
+    SIGNAL = "skipped"
+
+    pulse_t_s: NonNegative = Field(description="plant time of the pulse (or its segment start)")
+    reason: Literal["fit_failed", "skipped_disturbance"] = Field(description="why no estimate")
+    detail: Text = Field(description="what happened")
+
+
 class OosAlert(Message):
     """An out-of-specification episode. Key: ``twin/<line>/oos/alert``.
 
@@ -175,12 +190,19 @@ class DivertCommand(Message):
 ParamValue = Finite | int | bool | str
 
 
+#: a job id: an identifier that is a safe file name (no leading ``.``, so neither ``.`` nor
+#: ``..``): the dem service keeps a job's files in ``<run dir>/dem/<job_id>``
+JobId = Annotated[
+    str, StringConstraints(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
+]
+
+
 class DemJobRequest(Message):
     """Request to run a DEM job. Key: ``twin/<line>/dem/<job_id>/request``."""
 
     SIGNAL = "request"
 
-    job_id: Ident = Field(description="unique job id")
+    job_id: JobId = Field(description="unique job id (a safe file name)")
     scene: Ident = Field(description="scene to run, e.g. 'drawdown', 'feeder', 'blender_section'")
     params: dict[Ident, ParamValue] = Field(default_factory=dict, description="scene parameters")
     duration_s: Positive = Field(description="simulated time to run, s")
@@ -257,6 +279,7 @@ MESSAGE_MODELS: tuple[type[Message], ...] = (
     PredictedConcentration,
     Event,
     RtdEstimate,
+    RtdSkipped,
     OosAlert,
     DivertCommand,
     DemJobRequest,

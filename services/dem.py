@@ -18,7 +18,13 @@ thread:
 
 Results: :class:`~schemas.messages.DemJobResult` on ``twin/<line>/dem/<job_id>/result``; a
 failing job gives ``state: failed`` with the error, never a dead service. Job directories are
-``<run dir>/dem/<job_id>``.
+``<run dir>/dem/<job_id>`` (a job id is a safe file name, ``schemas.messages.JobId``, and the
+directory is checked to lie inside ``<run dir>/dem``).
+
+Quotas (refused with the reason): ``duration_s`` above :attr:`DemService.max_duration_s`, a scene
+of more than :attr:`DemService.max_particles` particles (its ``n_particles`` when it names one,
+else the built simulation's), more than :attr:`DemService.max_pending` jobs waiting or running.
+On a secured bus only the ``operator`` identity may request jobs (``services.security``).
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ import math
 import queue
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -47,10 +54,18 @@ log = logging.getLogger(__name__)
 class DemService(Service):
     """See the module docstring."""
 
+    #: simulated time a job may ask for, s
+    max_duration_s: float = 60.0
+    #: particles a job's scene may hold
+    max_particles: int = 200_000
+    #: jobs waiting or running at a time
+    max_pending: int = 4
+
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
         super().__init__("dem", spec=spec, **kwargs)
         self.jobs: queue.SimpleQueue[DemJobRequest | None] = queue.SimpleQueue()
         self.known: set[str] = set()
+        self.pending = 0
         self._lock = threading.Lock()
         self._pubs: dict[str, Publisher] = {}
         self._worker: threading.Thread | None = None
@@ -81,13 +96,39 @@ class DemService(Service):
         if req.job_id != job:
             self.counters.inc("rejected_schema")
             raise ValueError(f"job_id must match the key's id {job!r}, got {req.job_id!r}")
+        self._check_quota(req)
         with self._lock:
             if req.job_id in self.known:
                 raise ValueError(f"job_id must be new, got {req.job_id!r} (already submitted)")
+            if self.pending >= self.max_pending:
+                self.counters.inc("rejected_quota")
+                raise ValueError(
+                    f"jobs waiting or running must be at most {self.max_pending}, got "
+                    f"{self.pending} already: try again later"
+                )
             self.known.add(req.job_id)
+            self.pending += 1
         self.counters.inc("jobs_accepted")
         self.jobs.put(req)
         return req
+
+    def _check_quota(self, req: DemJobRequest) -> None:
+        """Refuse a job beyond the quotas (module docstring), naming the field and value."""
+        if req.duration_s > self.max_duration_s:
+            self.counters.inc("rejected_quota")
+            raise ValueError(f"duration_s must be <= {self.max_duration_s} s, got {req.duration_s}")
+        n = req.params.get("n_particles")
+        if isinstance(n, (int, float)) and n > self.max_particles:
+            self.counters.inc("rejected_quota")
+            raise ValueError(f"params.n_particles must be <= {self.max_particles}, got {n}")
+
+    def _job_dir(self, job_id: str) -> Path:
+        """``<run dir>/dem/<job_id>``, which must lie inside ``<run dir>/dem``."""
+        root = (self.state_path / "dem").resolve()
+        job_dir = (root / job_id).resolve()
+        if job_dir.parent != root:
+            raise ValueError(f"job_id must be a plain file name, got {job_id!r}")
+        return job_dir
 
     def _queued(self, req: DemJobRequest) -> DemJobProgress:
         return DemJobProgress(
@@ -167,6 +208,8 @@ class DemService(Service):
                     error=f"{type(exc).__name__}: {exc}"[:4000],
                 )
                 self._progress(req, "failed", 0.0, message=result.error or "")
+            with self._lock:
+                self.pending -= 1
             self._pub(req.job_id, "result", DemJobResult).publish(result)
 
     def run_job(self, req: DemJobRequest) -> tuple[dict[str, str], dict[str, float]]:
@@ -184,7 +227,7 @@ class DemService(Service):
         needs_rpm = cfg.scene == "blender"
         if needs_rpm and rpm is None:
             rpm = cfg.rpms[0]
-        job_dir = self.state_path / "dem" / req.job_id
+        job_dir = self._job_dir(req.job_id)
         job_dir.mkdir(parents=True, exist_ok=True)
         self._progress(req, "running", 0.0, message=f"{cfg.scene}: building")
         if analysis:
@@ -203,6 +246,10 @@ class DemService(Service):
             }
             return outputs, metrics
         sim, _geo = module.build(cfg, float(rpm)) if needs_rpm else module.build(cfg)
+        if sim.n_particles > self.max_particles:
+            raise ValueError(
+                f"the scene's particles must be at most {self.max_particles}, got {sim.n_particles}"
+            )
         t_start = float(sim.t)
 
         def on_step(s: Any) -> None:

@@ -7,7 +7,15 @@ plant's events ``twin/<line>/*/*/event`` (tracer pulses, disturbances) and the f
 ``twin/<line>/feeder/*/flow`` (their refill flags). Publishes
 :class:`~schemas.messages.RtdEstimate` on ``twin/<line>/rtd/estimate`` (parameters of the
 ``twin_core.rtd.models`` function named in ``model``); the blender adopts it when
-``blender.adopt_rtd_estimates`` is set.
+``blender.adopt_rtd_estimates`` is set. A pulse that gives no estimate is published too, with
+the reason (:class:`~schemas.messages.RtdSkipped` on ``twin/<line>/rtd/skipped``: the fit
+failed, or an excursion of unknown cause while a known disturbance could reach the outlet), so
+that a report lists it rather than missing it silently.
+
+The estimates are a function of the plant data only: inputs are handled in plant-time order
+after ``reorder_s`` (``services.service.Service``), so a tracer event that arrives a little after
+the NIR samples of its time (another route) is still announced before them; a restarted service
+recomputes from the history and does not publish an outcome again (ids in the run's output log).
 """
 
 from __future__ import annotations
@@ -17,7 +25,8 @@ from typing import Any
 
 from schemas import keys
 from schemas.line import LineSpec
-from schemas.messages import Event, FeederFlow, MeasuredConcentration, RtdEstimate
+from schemas.messages import Event, FeederFlow, MeasuredConcentration, RtdEstimate, RtdSkipped
+from services.common import OutputLog
 from services.service import Service
 from twin_core.online.inlet import event_record
 from twin_core.online.rtd import PulseOutcome, RtdCore
@@ -25,16 +34,26 @@ from twin_core.online.rtd import PulseOutcome, RtdCore
 log = logging.getLogger(__name__)
 
 
+def outcome_id(line: str, pulse_t_s: float) -> str:
+    """Stable id of the outcome of the pulse at ``pulse_t_s``."""
+    return f"{line}.rtd-{int(round(pulse_t_s * 1000)):012d}"
+
+
 class RtdService(Service):
     """See the module docstring."""
+
+    #: inputs in plant-time order whatever their arrival, up to two publisher heartbeats late
+    reorder_s = 1.0
 
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
         super().__init__("rtd", spec=spec, **kwargs)
         self.core = RtdCore(spec)
+        self.log_ids = OutputLog(self.state_path / "rtd.published")
 
     def setup(self) -> None:
         line = self.spec.name
         self.pub = self.publisher(keys.rtd_estimate(line), RtdEstimate, history=True)
+        self.skipped_pub = self.publisher(keys.rtd_skipped(line), RtdSkipped, history=True)
         self.history_subscribe(
             keys.measured_concentration(line, self.spec.sensor.id), MeasuredConcentration
         )
@@ -53,26 +72,47 @@ class RtdService(Service):
                 self.publish_outcome(outcome)
 
     def publish_outcome(self, o: PulseOutcome) -> None:
+        """The estimate of a fitted pulse, or why a pulse gave none (once per pulse)."""
+        oid = outcome_id(self.spec.name, o.segment.t0)
+        if oid in self.log_ids:
+            self.counters.inc("suppressed_republish")
+            return
+        t = float(o.segment.t[-1])
         if o.kind == "skipped_disturbance":
             self.counters.inc("pulses_skipped_disturbance")
-            return
-        if o.result is None:
+            detail = (
+                f"pulse found by itself at {o.segment.t0:.1f} s while a known disturbance or "
+                "refill could reach the outlet: not a tracer experiment"
+            )
+            self._skip(t, o, "skipped_disturbance", detail)
+        elif o.result is None:
             self.counters.inc("fit_failed")
             self.counters.last_error = o.error
             log.warning("%s", o.error)
-            return
-        r = o.result
-        self.pub.publish(
-            RtdEstimate(
-                t=float(o.segment.t[-1]),
-                seq=self.pub.seq,
-                model=r.model,
-                params=r.params,
-                stderr=r.stderr,
-                mean_residence_time_s=r.mean_residence_time_s,
-                pulse_t_s=r.pulse_t_s,
-                n_points=r.n_points,
-                rmse=r.rmse,
+            self._skip(t, o, "fit_failed", o.error)
+        else:
+            r = o.result
+            self.pub.publish(
+                RtdEstimate(
+                    t=t,
+                    seq=self.pub.seq,
+                    model=r.model,
+                    params=r.params,
+                    stderr=r.stderr,
+                    mean_residence_time_s=r.mean_residence_time_s,
+                    pulse_t_s=r.pulse_t_s,
+                    n_points=r.n_points,
+                    rmse=r.rmse,
+                )
             )
+            self.counters.inc("estimates")
+        self.log_ids.add(oid)
+
+    def _skip(self, t: float, o: PulseOutcome, reason: str, detail: str) -> None:
+        pub = self.skipped_pub
+        pub.publish(
+            RtdSkipped(t=t, seq=pub.seq, pulse_t_s=o.segment.t0, reason=reason, detail=detail)
         )
-        self.counters.inc("estimates")
+
+    def finish(self) -> None:
+        self.log_ids.close()

@@ -24,6 +24,7 @@ from schemas.messages import (
     OosAlert,
     PredictedConcentration,
     RtdEstimate,
+    RtdSkipped,
     ServiceHealth,
 )
 
@@ -60,6 +61,9 @@ GOOD = {
         stderr={"tau_d": 0.1},
         mean_residence_time_s=32.5,
         n_points=100,
+    ),
+    RtdSkipped: dict(
+        t=3.5, seq=0, pulse_t_s=900.0, reason="fit_failed", detail="profile area must be > 0"
     ),
     OosAlert: dict(
         t=4.0,

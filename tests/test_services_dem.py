@@ -36,7 +36,7 @@ def dem_run(tmp_path_factory):
     sup = Supervisor(spec).start()
     try:
         assert sup.wait_ready(120)
-        s = open_session(spec.client_bus())
+        s = open_session(sup.client_config("operator"))
 
         def on(sample: zenoh.Sample) -> None:
             k = keys.parse_key(str(sample.key_expr))
@@ -68,6 +68,10 @@ def dem_run(tmp_path_factory):
         out["good"] = ask("j1", good.to_json_bytes())
         out["dup"] = ask("j1", good.to_json_bytes())
         out["bad_json"] = ask("j2", b"{not json")
+        up = b'{"t": 0, "seq": 0, "job_id": "..", "scene": "drawdown", "duration_s": 0.004}'
+        out["dotdot"] = ask("..", up)
+        long = good.model_copy(update={"job_id": "j4", "duration_s": 3600.0})
+        out["too_long"] = ask("j4", long.to_json_bytes())
         bad_scene = good.model_copy(update={"job_id": "j3", "scene": "nosuchscene"})
         out["bad_scene"] = ask("j3", bad_scene.to_json_bytes())
         deadline = time.monotonic() + 240  # first run of the DEM kernels may compile (numba)
@@ -98,6 +102,9 @@ def test_dem_job_runs_with_progress_and_result(dem_run):
 def test_dem_bad_requests_are_refused_with_a_reason(dem_run):
     assert dem_run["dup"][0] == "err" and "already submitted" in dem_run["dup"][1]
     assert dem_run["bad_json"][0] == "err" and "invalid DemJobRequest" in dem_run["bad_json"][1]
+    # a job id that would name the run directory itself, a job beyond the duration quota
+    assert dem_run["dotdot"][0] == "err" and "job_id" in dem_run["dotdot"][1]
+    assert dem_run["too_long"][0] == "err" and "duration_s must be <=" in dem_run["too_long"][1]
     assert dem_run["bad_scene"][0] == "ok"  # well-formed: accepted, fails when run
     r = dem_run["results"]["j3"]
     assert r.state == "failed" and r.error
