@@ -12,6 +12,8 @@ were received on the bus.
 
 from __future__ import annotations
 
+import errno
+import io
 import json
 import logging
 import math
@@ -19,15 +21,16 @@ import threading
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import pandas as pd
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, Schema
+from mcap.records import Channel, Metadata, Schema
 from mcap.records import Message as McapMessage
-from mcap.stream_reader import StreamReader
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 from pydantic import BaseModel
 
@@ -99,12 +102,10 @@ class McapRecorder:
         self._last_flush = time.monotonic()
         self._closed = False
 
-    def _schema_id(self, model: type[BaseModel] | None) -> int:
-        name = schema_name(model) if model is not None else UNKNOWN_SCHEMA_NAME
+    def _schema_id(self, name: str, schema: dict[str, Any]) -> int:
         if name not in self._schemas:
-            data = json_schema(model) if model is not None else UNKNOWN_SCHEMA
             self._schemas[name] = self._writer.register_schema(
-                name=name, encoding="jsonschema", data=json.dumps(data).encode()
+                name=name, encoding="jsonschema", data=json.dumps(schema).encode()
             )
         return self._schemas[name]
 
@@ -112,9 +113,18 @@ class McapRecorder:
         """Channel of a key (registered on first use; ``model`` defaults to the key's model)."""
         if key not in self._channels:
             model = model or keys_mod.model_for_key(key)
-            self._channels[key] = self._writer.register_channel(
-                topic=key, message_encoding="json", schema_id=self._schema_id(model)
-            )
+            if model is None:
+                self.register_channel(key, UNKNOWN_SCHEMA_NAME, UNKNOWN_SCHEMA)
+            else:
+                self.register_channel(key, schema_name(model), json_schema(model))
+        return self._channels[key]
+
+    def register_channel(self, key: str, name: str, schema: dict[str, Any]) -> int:
+        """Register the channel of ``key`` with the JSON schema ``schema`` named ``name`` (as a
+        recording had it)."""
+        self._channels[key] = self._writer.register_channel(
+            topic=key, message_encoding="json", schema_id=self._schema_id(name, schema)
+        )
         return self._channels[key]
 
     def write(
@@ -125,6 +135,7 @@ class McapRecorder:
         *,
         publish_time_ns: int | None = None,
         model: type[BaseModel] | None = None,
+        sequence: int | None = None,
     ) -> None:
         if self._closed:
             raise ValueError(f"recorder for {self.path} is closed")
@@ -135,7 +146,7 @@ class McapRecorder:
             log_time=log_time,
             data=payload,
             publish_time=time.time_ns() if publish_time_ns is None else publish_time_ns,
-            sequence=self._seq[key],
+            sequence=self._seq[key] if sequence is None else sequence,
         )
         self._seq[key] += 1
         self.counts[key] += 1
@@ -219,12 +230,36 @@ class ChannelInfo:
 
 
 @dataclass
+class LostChunk:
+    """A part of a recording that could not be read: a chunk that failed its CRC or did not
+    decompress, bytes that are no record, or the tail cut off by a crash. ``start_ns`` /
+    ``end_ns``: the plant time it covered, when its header says; ``messages``: how many it held,
+    when its message index says (None: unknown)."""
+
+    offset: int
+    length: int
+    reason: str
+    start_ns: int | None = None
+    end_ns: int | None = None
+    messages: int | None = None
+
+    def describe(self) -> str:
+        span = ""
+        if self.start_ns is not None and self.end_ns is not None:
+            span = f", plant time {self.start_ns / NS:.1f}-{self.end_ns / NS:.1f} s"
+        n = "an unknown number of" if self.messages is None else str(self.messages)
+        return f"{n} messages lost at byte {self.offset} ({self.length} bytes{span}: {self.reason})"
+
+
+@dataclass
 class Recording:
     """A recording read into memory.
 
-    ``messages`` are in ``log_time`` order (file order among equal times). ``truncated`` is True
-    when the file was cut short (no valid summary/footer); then ``messages`` holds every message
-    of every complete chunk before the cut, and ``error`` and ``bytes_unread`` describe the loss.
+    ``messages`` are in ``log_time`` order (file order among equal times). What could not be
+    read is in ``lost`` (:class:`LostChunk`: corrupt chunks, skipped; the tail of a file cut
+    short); ``truncated`` is True when the file was cut short (no data end, summary or footer).
+    ``expected_messages``: the count the file's statistics declare (None if unknown).
+    ``metadata``: the MCAP metadata records (e.g. ``provenance``) by name.
     """
 
     path: Path
@@ -235,10 +270,28 @@ class Recording:
     bytes_read: int = 0
     bytes_total: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
+    lost: list[LostChunk] = field(default_factory=list)
+    expected_messages: int | None = None
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
 
     @property
     def bytes_unread(self) -> int:
         return max(0, self.bytes_total - self.bytes_read)
+
+    @property
+    def complete(self) -> bool:
+        """Whether every message of the file was read."""
+        return not self.truncated and not self.lost
+
+    @property
+    def messages_lost(self) -> int | None:
+        """Messages the file held that were not read (None: unknown, e.g. a cut tail)."""
+        if self.complete:
+            return 0
+        if self.expected_messages is not None:
+            return self.expected_messages - len(self.messages)
+        counts = [c.messages for c in self.lost]
+        return None if any(n is None for n in counts) else sum(counts)
 
     @property
     def start_ns(self) -> int | None:
@@ -271,39 +324,56 @@ class Recording:
         return cls(Path("<memory>"), msgs, channels)
 
     def loss_report(self) -> str:
-        """One line about completeness, e.g. for ``twin inspect`` and replay."""
-        if not self.truncated:
+        """One line about completeness, e.g. for ``twin inspect``, replay and the reports."""
+        if self.complete:
             return f"complete: {len(self.messages)} messages"
-        return (
-            f"TRUNCATED at byte {self.bytes_read} of {self.bytes_total} ({self.error}); "
-            f"recovered {len(self.messages)} messages of the complete chunks; "
-            f"the {self.bytes_unread} bytes after the cut (the last unflushed chunk) are lost"
+        lost = self.messages_lost
+        parts = []
+        if self.truncated:
+            parts.append(f"TRUNCATED at byte {self.bytes_read} of {self.bytes_total}")
+        parts.append(
+            f"INCOMPLETE: recovered {len(self.messages)} messages, lost "
+            + ("an unknown number" if lost is None else str(lost))
         )
+        parts += [c.describe() for c in self.lost]
+        return "; ".join(parts)
+
+    def loss_summary(self) -> dict[str, Any]:
+        """The input's completeness for a report: messages read and lost, and each loss."""
+        return {
+            "complete": self.complete,
+            "messages_read": len(self.messages),
+            "messages_lost": self.messages_lost,
+            "truncated": self.truncated,
+            "lost": [asdict(c) for c in self.lost],
+            "status": self.loss_report(),
+        }
+
+    def require_complete(self, allow_partial: bool = False) -> None:
+        """Raise ValueError (naming the loss) for an empty or incomplete recording; with
+        ``allow_partial`` an incomplete one with messages passes (the loss is logged)."""
+        if not self.messages:
+            raise ValueError(f"recording holds no message, {self.path}: {self.loss_report()}")
+        if self.complete:
+            return
+        if not allow_partial:
+            raise ValueError(
+                f"recording is incomplete (--allow-partial reads what is left), {self.path}: "
+                f"{self.loss_report()}"
+            )
+        log.warning("%s: %s", self.path, self.loss_report())
+
+
+MAGIC = b"\x89MCAP0\r\n"
+#: top-level record opcodes the scan accepts (MCAP spec)
+_KNOWN = {int(op) for op in Opcode}
+_RECORD_HEAD = 9  # opcode (1 byte) + length (8 bytes)
 
 
 def _channel_info(channel: Channel, schema: Schema | None) -> ChannelInfo:
     if schema is None or not schema.data:
         return ChannelInfo(channel.topic, UNKNOWN_SCHEMA_NAME, dict(UNKNOWN_SCHEMA))
     return ChannelInfo(channel.topic, schema.name, json.loads(schema.data))
-
-
-def _read_complete(path: Path) -> Recording:
-    with open(path, "rb") as f:
-        reader = make_reader(f)
-        summary = reader.get_summary()
-        if summary is None:
-            raise ValueError(f"{path} has no summary")
-        channels = {
-            c.topic: _channel_info(c, summary.schemas.get(c.schema_id))
-            for c in summary.channels.values()
-        }
-        messages = []
-        for schema, channel, message in reader.iter_messages(log_time_order=True):
-            messages.append(_recorded(channel, schema, message))
-    for m in messages:
-        channels[m.key].message_count += 1
-    size = path.stat().st_size
-    return Recording(path, messages, channels, bytes_read=size, bytes_total=size)
 
 
 def _recorded(channel: Channel, schema: Schema | None, message: McapMessage) -> RecordedMessage:
@@ -317,69 +387,221 @@ def _recorded(channel: Channel, schema: Schema | None, message: McapMessage) -> 
     )
 
 
-def _recover(path: Path) -> Recording:
-    """Read a file in file order with CRC validation, stopping at the first error; keep every
-    message of every complete chunk before it."""
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    messages: list[RecordedMessage] = []
-    error = None
-    good_pos = 0
-    with open(path, "rb") as f:
-        reader = StreamReader(f, validate_crcs=True)
-        records = reader.records
-        while True:
+def _parse(buf: bytes) -> Any:
+    """The one top-level record in ``buf`` (opcode, length, content)."""
+    return next(StreamReader(io.BytesIO(buf), skip_magic=True, emit_chunks=True).records)
+
+
+def _error(exc: Exception) -> str:
+    return f"{type(exc).__name__}: {exc}".strip().rstrip(":")
+
+
+class _Collector:
+    """Schemas, channels, messages and metadata gathered from records."""
+
+    def __init__(self) -> None:
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.messages: list[RecordedMessage] = []
+        self.metadata: dict[str, dict[str, str]] = {}
+
+    def add(self, record: Any) -> None:
+        if isinstance(record, Schema):
+            self.schemas[record.id] = record
+        elif isinstance(record, Channel):
+            self.channels[record.id] = record
+        elif isinstance(record, McapMessage):
+            ch = self.channels.get(record.channel_id)
+            if ch is not None:
+                self.messages.append(_recorded(ch, self.schemas.get(ch.schema_id), record))
+        elif isinstance(record, Metadata):
+            self.metadata[record.name] = dict(record.metadata)
+
+    def add_chunk(self, buf: bytes) -> None:
+        """The records of a chunk (CRC validated); raises if it is corrupt."""
+        chunk = _parse(buf)
+        records = breakup_chunk(chunk, validate_crc=True)
+        for r in records:
+            self.add(r)
+
+    def recording(self, path: Path, size: int, **fields: Any) -> Recording:
+        infos = {
+            ch.topic: _channel_info(ch, self.schemas.get(ch.schema_id))
+            for ch in self.channels.values()
+        }
+        self.messages.sort(key=lambda m: m.log_time_ns)
+        for m in self.messages:
+            infos[m.key].message_count += 1
+        return Recording(
+            path, self.messages, infos, bytes_total=size, metadata=self.metadata, **fields
+        )
+
+
+def _chunk_times(buf: bytes) -> tuple[int | None, int | None]:
+    """Start and end times of a chunk record from its header (None if cut before them)."""
+    head = buf[_RECORD_HEAD : _RECORD_HEAD + 16]
+    if len(head) < 16:
+        return None, None
+    return int.from_bytes(head[:8], "little"), int.from_bytes(head[8:], "little")
+
+
+def _index_count(data: bytes, offsets: Iterable[int]) -> int | None:
+    """Messages listed by the message-index records at ``offsets`` (None if unreadable)."""
+    n = 0
+    for off in offsets:
+        try:
+            length = int.from_bytes(data[off + 1 : off + _RECORD_HEAD], "little")
+            n += len(_parse(data[off : off + _RECORD_HEAD + length]).records)
+        except Exception:  # noqa: BLE001 - a corrupt index: the count is unknown
+            return None
+    return n
+
+
+def _read_indexed(path: Path, data: bytes) -> Recording | None:
+    """Read through the summary: every chunk its chunk index names, a corrupt one skipped with
+    its time span and message count from the index; None without a usable summary."""
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception as exc:  # noqa: BLE001 - no usable summary: the caller scans
+        log.debug("%s: no summary (%s)", path, _error(exc))
+        return None
+    if summary is None or not summary.chunk_indexes:
+        return None
+    got = _Collector()
+    got.schemas.update(summary.schemas)
+    got.channels.update(summary.channels)
+    lost = []
+    for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        buf = data[ci.chunk_start_offset : ci.chunk_start_offset + ci.chunk_length]
+        try:
+            got.add_chunk(buf)
+        except Exception as exc:  # noqa: BLE001 - CRC, zstd, struct errors: skip this chunk
+            n = _index_count(data, ci.message_index_offsets.values())
+            lost.append(
+                LostChunk(
+                    ci.chunk_start_offset,
+                    ci.chunk_length,
+                    f"corrupt chunk, skipped: {_error(exc)}",
+                    ci.message_start_time,
+                    ci.message_end_time,
+                    n,
+                )
+            )
+    for mi in summary.metadata_indexes:
+        try:
+            got.add(_parse(data[mi.offset : mi.offset + mi.length]))
+        except Exception as exc:  # noqa: BLE001 - lose that metadata record only
+            log.warning("%s: metadata %r unreadable: %s", path, mi.name, _error(exc))
+    stats = summary.statistics
+    expected = stats.message_count if stats is not None else None
+    size = len(data)
+    return got.recording(path, size, bytes_read=size, lost=lost, expected_messages=expected)
+
+
+def _resync(data: bytes, start: int) -> int | None:
+    """The offset of the next chunk record at or after ``start`` that parses with a valid CRC
+    (after bytes that are no record), or None."""
+    pos = data.find(bytes([Opcode.CHUNK]), start)
+    while pos != -1:
+        length = int.from_bytes(data[pos + 1 : pos + _RECORD_HEAD], "little")
+        end = pos + _RECORD_HEAD + length
+        if end <= len(data):
             try:
-                record = next(records)
-            except StopIteration:
+                breakup_chunk(_parse(data[pos:end]), validate_crc=True)
+                return pos
+            except Exception:  # noqa: BLE001, S112 - not a chunk: keep looking
+                pass
+        pos = data.find(bytes([Opcode.CHUNK]), pos + 1)
+    return None
+
+
+def _scan(path: Path, data: bytes) -> Recording:
+    """Read in file order: a corrupt chunk is skipped (its message count from the message index
+    that follows it), bytes that are no record are skipped up to the next valid chunk, and a
+    file cut short keeps every complete chunk before the cut."""
+    got = _Collector()
+    lost: list[LostChunk] = []
+    size, pos, ended, error = len(data), len(MAGIC), False, None
+    last_bad: LostChunk | None = None
+    while pos < size:
+        opcode = data[pos]
+        length = int.from_bytes(data[pos + 1 : pos + _RECORD_HEAD], "little")
+        end = pos + _RECORD_HEAD + length
+        if pos + _RECORD_HEAD > size or opcode not in _KNOWN or end > size:
+            nxt = _resync(data, pos + 1)
+            cut = nxt is None
+            start, stop = _chunk_times(data[pos:]) if opcode == Opcode.CHUNK else (None, None)
+            reason = "cut short" if cut else "bytes that are no MCAP record, skipped"
+            lost.append(LostChunk(pos, (size if cut else nxt) - pos, reason, start, stop))
+            if cut:
+                error = f"the file ends inside a record at byte {pos}"
                 break
-            except Exception as exc:  # noqa: BLE001 - EndOfFile, struct, zstd, CRC errors
-                error = f"{type(exc).__name__}: {exc}".strip().rstrip(":")
-                break
-            if isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-            elif isinstance(record, McapMessage):
-                ch = channels.get(record.channel_id)
-                if ch is None:
-                    continue
-                messages.append(_recorded(ch, schemas.get(ch.schema_id), record))
-            good_pos = reader._stream.count  # bytes consumed by complete records
-    size = path.stat().st_size
-    infos: dict[str, ChannelInfo] = {}
-    for ch in channels.values():
-        infos[ch.topic] = _channel_info(ch, schemas.get(ch.schema_id))
-    messages.sort(key=lambda m: m.log_time_ns)
-    for m in messages:
-        infos[m.key].message_count += 1
-    truncated = error is not None
-    return Recording(
+            pos, last_bad = nxt, None
+            continue
+        buf = data[pos:end]
+        if opcode == Opcode.CHUNK:
+            try:
+                got.add_chunk(buf)
+                last_bad = None
+            except Exception as exc:  # noqa: BLE001 - skip the corrupt chunk
+                start, stop = _chunk_times(buf)
+                last_bad = LostChunk(
+                    pos, len(buf), f"corrupt chunk, skipped: {_error(exc)}", start, stop, 0
+                )
+                lost.append(last_bad)
+        elif opcode == Opcode.MESSAGE_INDEX and last_bad is not None:
+            n = _index_count(data, [pos])
+            last_bad.messages = (
+                None if n is None or last_bad.messages is None else last_bad.messages + n
+            )
+        elif opcode in (Opcode.DATA_END, Opcode.FOOTER):
+            ended = data.endswith(MAGIC)
+            if not ended:
+                error = f"the file ends after its data, without summary and footer (byte {end})"
+            pos = end
+            break
+        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE, Opcode.METADATA):
+            try:
+                got.add(_parse(buf))
+            except Exception as exc:  # noqa: BLE001
+                lost.append(LostChunk(pos, len(buf), f"corrupt record, skipped: {_error(exc)}"))
+        pos = end
+    for c in lost:  # a chunk without a message index after it: its count is unknown
+        if c.messages == 0 and c.reason.startswith("corrupt chunk"):
+            c.messages = None
+    truncated = not ended
+    if truncated and error is None:
+        error = "no data end, summary or footer"
+    return got.recording(
         path,
-        messages,
-        infos,
+        size,
         truncated=truncated,
-        error=error if truncated else None,
-        bytes_read=min(good_pos, size) if truncated else size,
-        bytes_total=size,
+        error=error,
+        bytes_read=min(pos, size),
+        lost=lost,
     )
 
 
 def read_recording(path: str | Path, *, keys: Iterable[str] | None = None) -> Recording:
-    """Read a recording; a file cut short (crash) is recovered (see :class:`Recording`).
+    """Read a recording, as much of it as can be read (see :class:`Recording`): through its
+    summary and chunk index when it has them, else in file order; a corrupt chunk is skipped
+    with a warning naming it, every other complete chunk is read.
 
-    ``keys``: keep only these channels (exact keys).
+    Raises FileNotFoundError for a missing file and ValueError for an empty file or one that is
+    not MCAP. ``keys``: keep only these channels (exact keys).
     """
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"recording not found: {path}")
-    try:
-        rec = _read_complete(path)
-    except Exception as exc:  # noqa: BLE001 - any failure of the indexed path -> recovery
-        log.debug("indexed read of %s failed (%s); recovering", path, exc)
-        rec = _recover(path)
-        if rec.truncated:
-            log.warning("%s: %s", path, rec.loss_report())
+        raise FileNotFoundError(errno.ENOENT, "recording not found", str(path))
+    data = path.read_bytes()
+    if not data:
+        raise ValueError(f"recording is empty (0 bytes), {path}")
+    if not data.startswith(MAGIC):
+        raise ValueError(f"not an MCAP file (no MCAP magic at its start), {path}")
+    rec = _read_indexed(path, data) or _scan(path, data)
+    if not rec.complete:
+        log.warning("%s: %s", path, rec.loss_report())
     if keys is not None:
         wanted = set(keys)
         rec.messages = [m for m in rec.messages if m.key in wanted]
@@ -388,7 +610,7 @@ def read_recording(path: str | Path, *, keys: Iterable[str] | None = None) -> Re
 
 
 def summarize(rec: Recording) -> str:
-    """Human-readable summary: channels, schema names, message counts, time span."""
+    """Human-readable summary: channels, schema names, message counts, time span, losses."""
     lines = [f"file: {rec.path} ({rec.bytes_total} bytes)", rec.loss_report()]
     if rec.messages:
         lines.append(
@@ -402,6 +624,8 @@ def summarize(rec: Recording) -> str:
         lines.append(f"  {key:<{width}}  {c.message_count:>8} msgs  schema {c.schema_name}")
     names = sorted({c.schema_name for c in rec.channels.values()})
     lines.append(f"schemas: {', '.join(names)}")
+    if rec.metadata:
+        lines.append(f"metadata: {', '.join(sorted(rec.metadata))}")
     return "\n".join(lines)
 
 
@@ -714,6 +938,41 @@ def record_bus(
     return RecordStats(Path(path), dict(recorder.counts), rejected, time.monotonic() - t0, reason)
 
 
+def recording_mismatches(rec: Recording, line: Any) -> list[Any]:
+    """What differs between a recording and the declared line (a ``schemas.line.LineConfig``):
+    the line configuration of its ``provenance`` metadata and its first messages (each feeder's
+    first flow, the first measurement), by ``twin_core.online.feed``; each difference once."""
+    from schemas.messages import FeederFlow, MeasuredConcentration
+    from twin_core.online.feed import FeedCheck, line_mismatches
+
+    found = []
+    recorded = rec.metadata.get("provenance", {}).get("line_config")
+    if recorded:
+        try:
+            found += line_mismatches(line, json.loads(recorded))
+        except (ValueError, TypeError, KeyError, AttributeError) as exc:
+            log.warning("%s: provenance line_config unreadable: %s", rec.path, exc)
+    check = FeedCheck(line)
+    wanted = {f"feeder:{f.id}" for f in line.feeders} | {"sensor"}
+    seen: set[str] = set()
+    for m in rec.messages:
+        k = keys_mod.parse_key(m.key)
+        if k.signal == FeederFlow.SIGNAL:
+            f = FeederFlow.model_validate_json(m.payload)
+            found += check.flow(k.id, f.component, f.setpoint_kg_h)
+            seen.add(f"feeder:{k.id}")
+        elif k.signal == MeasuredConcentration.SIGNAL:
+            c = MeasuredConcentration.model_validate_json(m.payload)
+            found += check.measured(c.sensor, c.component)
+            seen.add("sensor")
+        if wanted <= seen:
+            break
+    unique: dict[str, Any] = {}
+    for x in found:
+        unique.setdefault(x.field, x)
+    return list(unique.values())
+
+
 def validate_messages(rec: Recording) -> tuple[list[RecordedMessage], dict[str, int]]:
     """Split a recording's messages into the valid ones (in order) and counts of rejections
     by reason (``rejected_json``, ``rejected_schema``); keys without a model pass if JSON."""
@@ -743,7 +1002,11 @@ class BusReplay:
     session is the line's client bus, the publishers keep the line's history (late or restarted
     services fetch it) and the replay ends with an ``END_OF_STREAM`` event on
     ``keys.replay_event(line)`` at the plant time of the last sample. Recorded messages that do
-    not validate are skipped (counted in :attr:`rejected`).
+    not validate are skipped (counted in :attr:`rejected`). It refuses (ValueError) a recording
+    that does not match the line (:func:`recording_mismatches`; ``allow_mismatch`` replays it
+    anyway), and (RuntimeError) a running twin that has already seen later plant time than the
+    recording starts at: its messages would go back in time on the twin's keys and be rejected
+    (``rejected_time``), a second plant session needs a fresh twin.
     """
 
     def __init__(
@@ -758,9 +1021,19 @@ class BusReplay:
         linger_s: float = 0.0,
         service_name: str = "replay",
         install_signal_handlers: bool = True,
+        allow_mismatch: bool = False,
     ) -> None:
         from services.service import Service
 
+        if spec is not None:
+            found = recording_mismatches(rec, spec)
+            if found and not allow_mismatch:
+                raise ValueError(
+                    f"the recording does not match the twin's line configuration "
+                    f"(--allow-mismatch replays it anyway), {'; '.join(str(x) for x in found)}"
+                )
+            if found:
+                log.warning("replay: the recording does not match the line: %s", found)
         valid, self.rejected = validate_messages(rec)
         if any(self.rejected.values()):
             log.warning("replay: skipping invalid recorded messages: %s", self.rejected)
@@ -796,10 +1069,30 @@ class BusReplay:
             if self.settle_s > 0:
                 svc.stop_flag.wait(self.settle_s)
             self._baseline = ping(svc.session)
+            if history:
+                self._refuse_past()
         except BaseException:
             svc.close()
             raise
         return self
+
+    def _refuse_past(self) -> None:
+        """Refuse to replay into a twin that has already seen later plant time (see above)."""
+        if not self.rec.messages:
+            return
+        t0 = self.rec.messages[0].t
+        seen = {
+            name: r.health.t
+            for name, r in self._baseline.items()
+            if name not in (self.svc.name, "supervisor") and r.health.t > t0
+        }
+        if seen:
+            name = max(seen, key=seen.get)
+            raise RuntimeError(
+                f"the running twin has already seen plant time {seen[name]:.1f} s ({name}) and "
+                f"the recording starts at {t0:.1f} s: its messages would go back in time and be "
+                "rejected; stop `twin up` and start it again to replay another plant session"
+            )
 
     def _publish(self, key: str, payload: bytes) -> None:
         self.pubs[key].put_raw(payload)
@@ -876,6 +1169,26 @@ def replay_to_bus(
         )
     stats.acknowledged_by = r.acknowledged_by
     return stats
+
+
+def write_recording(rec: Recording, path: str | Path) -> int:
+    """Write what a recording holds (channels with their schemas, messages with their times and
+    sequence numbers, metadata) to a new, complete MCAP file (footer, summary, chunk index):
+    ``twin recover``. Returns the messages written."""
+    with McapRecorder(path, flush_period_s=None, flush_every=10**9) as out:
+        for key, c in sorted(rec.channels.items()):
+            out.register_channel(key, c.schema_name, c.schema)
+        for name, data in sorted(rec.metadata.items()):
+            out.add_metadata(name, data)
+        for m in rec.messages:
+            out.write(
+                m.key,
+                m.payload,
+                m.log_time_ns / NS,
+                publish_time_ns=m.publish_time_ns,
+                sequence=m.sequence,
+            )
+        return out.total
 
 
 def write_messages(path: str | Path, messages: Iterable[tuple[str, Message]]) -> int:

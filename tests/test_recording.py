@@ -115,6 +115,63 @@ def test_truncated_file_recovers_every_complete_chunk(tmp_path):
         assert rec.bytes_read < rec.bytes_total == len(cut.read_bytes())
 
 
+def flip_in_chunk(path: Path, k: int) -> tuple[bytes, int]:
+    """The file's bytes with one byte flipped in the middle of its k-th chunk (0-based), and the
+    messages that chunk held (from its message index)."""
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    c = chunks[k]
+    data = bytearray(path.read_bytes())
+    data[c.chunk_start_offset + c.chunk_length // 2] ^= 0xFF
+    held = [m for m in read_recording(path).messages if c.message_start_time <= m.log_time_ns]
+    held = [m for m in held if m.log_time_ns <= c.message_end_time]
+    return bytes(data), len(held)
+
+
+def test_a_corrupt_chunk_is_skipped_and_every_other_chunk_read(tmp_path):
+    """One flipped byte in chunk 3 of 6: the other five chunks are read (through the chunk
+    index; and in file order when the summary is cut off too), the loss is named (offset, plant
+    time, messages), and `twin recover` writes a complete file that the mcap reader opens."""
+    path = tmp_path / "six.mcap"
+    sent = write_sample(path, 600, flush_every=100)
+    data, n_bad = flip_in_chunk(path, 2)
+    bad = tmp_path / "flipped.mcap"
+    bad.write_bytes(data)
+    rec = read_recording(bad)
+    assert n_bad == 100 and not rec.truncated and not rec.complete
+    assert len(rec.messages) == 500 and rec.messages_lost == 100
+    [lost] = rec.lost
+    assert "corrupt chunk" in lost.reason and lost.messages == 100
+    good = [p for i, (_, p, _) in enumerate(sent) if not 200 <= i < 300]
+    assert [m.payload for m in rec.messages] == good
+    assert "100 messages lost" in rec.loss_report()
+    # no summary either (cut after the last chunk): the file-order scan skips the same chunk
+    cut = tmp_path / "flipped_cut.mcap"
+    cut.write_bytes(data[: len(data) - 1500])
+    scanned = read_recording(cut)
+    assert scanned.truncated and [m.payload for m in scanned.messages] == good
+    assert scanned.lost[0].messages == 100
+    # twin recover: a complete file, footer and summary, that the mcap reader opens
+    out = tmp_path / "recovered.mcap"
+    r = subprocess.run([*TWIN, "recover", str(cut), str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "recovered 500 messages" in r.stdout
+    with open(out, "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_summary().statistics.message_count == 500
+        assert [m.data for _, _, m in reader.iter_messages()] == good
+    back = read_recording(out)
+    assert back.complete and [m.sequence for m in back.messages] == [
+        m.sequence for m in scanned.messages
+    ]
+    # an incomplete input is refused by the commands that read it, unless --allow-partial
+    r = subprocess.run([*TWIN, "replay", str(bad), "--as-fast-as-possible"], capture_output=True)
+    assert r.returncode == 2 and b"recording is incomplete" in r.stderr
+    r = subprocess.run([*TWIN, "recover", str(bad), str(tmp_path / "no" / "x.mcap")])
+    assert r.returncode == 2 and not (tmp_path / "no").exists()
+
+
 CRASH_WRITER = textwrap.dedent(
     """
     import sys
@@ -323,8 +380,19 @@ def test_cli_inspect_and_schemas(tmp_path):
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(path.read_bytes()[:-2000])
     r = subprocess.run([*TWIN, "inspect", str(cut)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "TRUNCATED" in r.stdout
+    assert r.stderr.strip().splitlines()[-1].startswith("error: recording is incomplete")
+    r = subprocess.run(
+        [*TWIN, "inspect", str(cut), "--allow-partial"], capture_output=True, text=True, timeout=60
+    )
     assert r.returncode == 0 and "TRUNCATED" in r.stdout
     assert summarize(read_recording(cut)) == r.stdout.strip()
+    for bad, what in ((b"", "recording is empty"), (b"not mcap at all", "not an MCAP file")):
+        other = tmp_path / "bad.mcap"
+        other.write_bytes(bad)
+        r = subprocess.run([*TWIN, "inspect", str(other)], capture_output=True, text=True)
+        assert r.returncode == 2 and r.stderr.startswith(f"error: {what} (")
+        assert len(r.stderr.strip().splitlines()) == 1
     r = subprocess.run(
         [*TWIN, "schemas", "export", str(tmp_path / "s")],
         capture_output=True,

@@ -1,10 +1,13 @@
-"""``twin record | replay | inspect | schemas | router``: the bus and its recordings (``twin replay``
-is the one replay: of a recording onto any bus, or into a running twin with ``--config``)."""
+"""``twin record | replay | inspect | recover | schemas | router``: the bus and its recordings
+(``twin replay`` is the one replay: of a recording onto any bus, or into a running twin with
+``--config``). An empty, non-MCAP or incomplete recording is an error unless
+``--allow-partial``; ``twin recover`` writes a complete file from an incomplete one."""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -33,6 +36,25 @@ def add_bus_options(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--line", help="line name in key expressions (default line1)")
 
 
+def partial_arg(parser: argparse.ArgumentParser) -> None:
+    """``--allow-partial``: go on with what an incomplete recording holds (the loss is said)."""
+    parser.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="accept an incomplete recording (cut short, corrupt chunks): use what is left",
+    )
+
+
+def check_output_file(path: Path) -> None:
+    """Refuse, before any work, an output file whose folder does not exist or is not writable
+    (no folder is created for it)."""
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise ValueError(f"the output's folder does not exist, {str(folder)!r} (of {str(path)!r})")
+    if not os.access(folder, os.W_OK):
+        raise ValueError(f"the output's folder is not writable, {str(folder)!r}")
+
+
 def bus_config_from_args(args: argparse.Namespace, **defaults):
     """BusConfig from ``--bus-config`` then the individual options (options win)."""
     from schemas.bus_config import BusConfig
@@ -53,6 +75,7 @@ def bus_config_from_args(args: argparse.Namespace, **defaults):
 def cmd_record(args: argparse.Namespace) -> int:
     from services.recording import read_recording, record_bus, summarize
 
+    check_output_file(args.out)
     cfg = bus_config_from_args(args)
     print(f"recording {args.keys} -> {args.out} (Ctrl-C to stop)", file=sys.stderr, flush=True)
     stats = record_bus(
@@ -80,12 +103,19 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from services.recording import read_recording, replay_to_bus
 
     rec = read_recording(args.file)
-    if rec.truncated:
-        print(f"warning: {rec.loss_report()}", file=sys.stderr)
+    rec.require_complete(args.allow_partial)
     if args.config:
         from schemas.line import LineSpec
+        from services.security import tool_bus
 
-        line = {"spec": LineSpec.from_file(args.config), "settle_s": 0.5, "service_name": "plant"}
+        spec = LineSpec.from_file(args.config)
+        line = {
+            "spec": spec,
+            "config": tool_bus(spec, "plant"),
+            "settle_s": 0.5,
+            "service_name": "plant",
+            "allow_mismatch": args.allow_mismatch,
+        }
     else:
         line = {"config": bus_config_from_args(args), "settle_s": args.settle}
     stats = replay_to_bus(
@@ -111,6 +141,22 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
     rec = read_recording(args.file)
     print(summarize(rec))
+    rec.require_complete(args.allow_partial)
+    return 0
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    from services.recording import read_recording, write_recording
+
+    out = Path(args.out)
+    if out.resolve() == Path(args.file).resolve():
+        raise ValueError(f"OUT must be another file than IN, got {str(out)!r} for both")
+    check_output_file(out)
+    rec = read_recording(args.file)
+    if not rec.messages:
+        raise ValueError(f"nothing to recover, {args.file}: {rec.loss_report()}")
+    n = write_recording(rec, out)
+    print(f"recovered {n} messages to {out} ({rec.loss_report()})", flush=True)
     return 0
 
 
@@ -200,12 +246,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="S",
         help="wait S seconds before the first message",
     )
+    p.add_argument(
+        "--allow-mismatch",
+        action="store_true",
+        help="with --config: replay a recording whose line (provenance, first messages) differs "
+        "from the twin's configuration",
+    )
+    partial_arg(p)
     add_bus_options(p)
     p.set_defaults(func=cmd_replay)
 
     p = subparsers.add_parser("inspect", help="channels, counts, time span, schemas of a file")
     p.add_argument("file", type=Path)
+    partial_arg(p)
     p.set_defaults(func=cmd_inspect)
+
+    p = subparsers.add_parser(
+        "recover",
+        help="write what a crash-cut or corrupt recording holds to a new, complete MCAP file",
+    )
+    p.add_argument("file", type=Path, metavar="IN")
+    p.add_argument("out", type=Path, metavar="OUT")
+    p.set_defaults(func=cmd_recover)
 
     p = subparsers.add_parser("schemas", help="wire-contract JSON Schemas")
     sp = p.add_subparsers(dest="schemas_command", metavar="SUBCOMMAND", required=True)
