@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import logging
 import math
 from pathlib import Path
 
@@ -120,7 +119,7 @@ def test_cli_close_loop_estimates_the_noise_on_request(tmp_path):
     assert json.loads(out.read_text())["noise"]["source"] == "declared"
 
 
-def test_cli_close_loop_rejects_a_file_that_is_not_a_line_config(tmp_path, caplog):
+def test_cli_close_loop_rejects_a_file_that_is_not_a_line_config(tmp_path, capsys):
     """One format: a YAML that is not a ``LineSpec`` (here a bare declared line without the
     specification, with a feeder's id misspelt) stops the command with exit code 2 and one line
     naming the fields, before the recording is read."""
@@ -132,9 +131,8 @@ def test_cli_close_loop_rejects_a_file_that_is_not_a_line_config(tmp_path, caplo
     conf = tmp_path / "line.json"
     conf.write_text(json.dumps(data))
     args = ["close-loop", str(tmp_path / "absent.mcap"), "--config", str(conf)]
-    with caplog.at_level(logging.ERROR):
-        rc = main([*args, "--report", str(tmp_path / "r.json")])
+    rc = main([*args, "--report", str(tmp_path / "r.json")])
     assert rc == 2
-    (line,) = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
-    assert "is not a valid line config" in line and "\n" not in line
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("error: ") and "is not a valid line config" in line
     assert "feeders.0.id: Field required" in line and "spec: Field required" in line

@@ -3,7 +3,8 @@
     twin close-loop RECORDING.mcap --config LINE.yaml --report OUT.json [--figures DIR]
 
 RECORDING is an MCAP log of the line (feeder flows, NIR concentration, events; checked by
-``twin_core.closeloop.check.check_recording``). LINE.yaml is the line's configuration file
+``twin_core.closeloop.check.check_recording``); an incomplete one is refused unless
+``--allow-partial``, and the report states what was lost (``diagnostics_before.input``). LINE.yaml is the line's configuration file
 (``schemas.line.LineSpec``, e.g. ``services/configs/line1.yaml``); its declared line (feeders,
 blender, sensor, tracers) is the model checked. The report is validated against
 ``schemas.closeloop.CloseLoopReport``; ``--figures`` writes PNGs of measured vs predicted and of
@@ -37,6 +38,7 @@ def load_line_config(path: str | Path) -> Any:
 
 def cmd_close_loop(args: argparse.Namespace) -> int:
     from schemas.closeloop import CloseLoopReport
+    from services.cli.bus import check_output_file
     from services.recording import read_recording
     from twin_core.closeloop import IdentifyOptions
     from twin_core.closeloop.check import check_recording
@@ -50,12 +52,11 @@ def cmd_close_loop(args: argparse.Namespace) -> int:
         train_fraction=args.train_fraction,
         skip_s=args.skip_s,
     )
-    try:
-        config = load_line_config(args.config)
-    except ValueError as exc:
-        log.error("%s", exc)
-        return 2
-    messages = ((m.key, m.decode()) for m in read_recording(args.recording).messages)
+    config = load_line_config(args.config)
+    check_output_file(Path(args.report))
+    rec = read_recording(args.recording)
+    rec.require_complete(args.allow_partial)
+    messages = ((m.key, m.decode()) for m in rec.messages)
     report = check_recording(
         messages,
         config,
@@ -64,14 +65,19 @@ def cmd_close_loop(args: argparse.Namespace) -> int:
         recording=str(args.recording),
         figures_dir=args.figures,
     )
+    report["diagnostics_before"]["input"] = rec.loss_summary()
     rep = CloseLoopReport.model_validate(report)
-    Path(args.report).parent.mkdir(parents=True, exist_ok=True)
     Path(args.report).write_text(rep.model_dump_json(indent=2))
     effects = [
         {"label": x["label"], **{p["name"]: p["value"] for p in x["params"]}}
         for x in report["effects"]
     ]
-    summary = {"status": report["status"], "effects": effects, "errors": report["errors"]}
+    summary = {
+        "status": report["status"],
+        "effects": effects,
+        "errors": report["errors"],
+        "input": rec.loss_report(),
+    }
     print(json.dumps({**summary, "noise": report["noise"]["source"]}, indent=2))
     return 0
 
@@ -87,6 +93,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--config", required=True, help="line configuration (YAML/JSON LineSpec)")
     p.add_argument("--report", required=True, help="JSON report to write")
     p.add_argument("--figures", default=None, help="directory for PNG figures")
+    p.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="accept an incomplete recording (cut short, corrupt chunks); the report says the loss",
+    )
     p.add_argument("--candidates", default=None, help="comma-separated effect names (default all)")
     p.add_argument("--max-effects", type=int, default=2)
     p.add_argument("--alpha", type=float, default=0.05)

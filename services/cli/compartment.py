@@ -170,8 +170,7 @@ def cmd_build(args: argparse.Namespace) -> int:
         )
         result = build_blender_model(load_fields(args.fields), opts, source=args.fields.name)
     except ValueError as exc:
-        log.error("%s", exc)
-        return 2
+        raise ValueError(f"{exc}") from None
     result.blender.save(args.out)
     print(json.dumps({**result.report, "model": str(args.out)}, indent=1, default=float))
     if args.figures is not None:
@@ -197,8 +196,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         t, u, y = simulate_blender(bm, scenario)
         elapsed = time.perf_counter() - t0
     except ValueError as exc:
-        log.error("%s", exc)
-        return 2
+        raise ValueError(f"{exc}") from None
     summary = {"points": int(t.size), "simulate_s": elapsed}
     summary |= {"mean_residence_time_s": bm.mean_residence_time_s}
     summary |= {"outlet_min": float(y.min()), "outlet_max": float(y.max())}

@@ -34,14 +34,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         cfg = load_scene(args.scene)
     except ValueError as exc:
-        log.error("invalid scene %s: %s", args.scene, exc)
-        return 2
+        raise ValueError(f"invalid scene, {args.scene}: {exc}") from None
     if args.threads is not None:
         import numba
 
         if args.threads < 1:
-            log.error("--threads must be >= 1, got %s", args.threads)
-            return 2
+            raise ValueError(f"--threads must be >= 1, got {args.threads}")
         numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     out = args.out or Path("out") / "dem" / cfg.name
     summary = run_scene(cfg, out, resume=args.resume, progress=not args.no_progress)

@@ -147,13 +147,44 @@ def parse_disturbance(text: str) -> dict[str, Any]:
     return d
 
 
+#: the keys of an effect given on the command line (``twin_core.plant.effects.make_effect``)
+EFFECT_KEYS = ("name", "params", "target")
+
+
+def parse_effect(text: str) -> dict:
+    """An ``--effect`` JSON object, checked before any work: JSON, only the keys
+    :data:`EFFECT_KEYS`, a known effect name and parameters it takes (ValueError naming the
+    value otherwise)."""
+    from twin_core.plant.effects import make_effect
+
+    try:
+        spec = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--effect must be a JSON object, got {text!r} ({exc.msg})") from None
+    if not isinstance(spec, dict):
+        raise ValueError(f"--effect must be a JSON object, got {text!r}")
+    unknown = sorted(set(spec) - set(EFFECT_KEYS))
+    if unknown:
+        raise ValueError(
+            f"--effect keys must be among {list(EFFECT_KEYS)} (parameters go in 'params'), "
+            f"got {unknown} in {text!r}"
+        )
+    try:
+        make_effect(spec)
+    except TypeError as exc:
+        raise ValueError(f"--effect parameters rejected, {text!r}: {exc}") from None
+    return spec
+
+
 def cmd_plant_simulate(args: argparse.Namespace) -> int:
+    from services.cli.bus import check_output_file
     from services.recording import write_messages
     from twin_core.plant.messages import simulate_messages
 
     spec = _spec(args)
     dists = [parse_disturbance(d) for d in args.disturbance or []]
-    effects = [json.loads(e) for e in args.effect or []]
+    effects = [parse_effect(e) for e in args.effect or []]
+    check_output_file(Path(args.out))
     t0 = time.perf_counter()
     _, msgs = simulate_messages(spec, args.duration, args.seed, dists, effects)
     n = write_messages(args.out, msgs)

@@ -95,6 +95,11 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except SystemExit as exc:  # a command stopping with a message: the same one-line error
+        if isinstance(exc.code, str):
+            print(f"error: {exc.code}", file=sys.stderr, flush=True)
+            return USAGE_ERROR
+        raise
     except Exception as exc:  # noqa: BLE001 - every error is one line unless --debug
         if args.debug:
             raise

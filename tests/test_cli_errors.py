@@ -1,0 +1,115 @@
+"""One error style for the whole command line: every sub-command given a missing file, a bad
+configuration and a bad argument answers one line ``error: <what>, <field/value>`` on stderr,
+exit status 2, no traceback, and creates nothing (no folder for an output in a missing one)."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from services.cli.main import build_parser, main
+
+
+def leaf_commands() -> set[str]:
+    """Every sub-command of ``twin`` ("rtd analyze", "up", ...)."""
+    found: set[str] = set()
+
+    def walk(parser: argparse.ArgumentParser, path: list[str]) -> None:
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        if not subs:
+            found.add(" ".join(path))
+            return
+        for name, sub in subs[0].choices.items():
+            walk(sub, [*path, name])
+
+    walk(build_parser(), [])
+    return found
+
+
+#: per sub-command: its arguments with a missing input file ({missing}), a bad configuration or
+#: input ({bad}: a file that is not valid YAML), outputs under {tmp}; the commands without an
+#: input file write an output folder (created on purpose): given one under a file instead
+CASES: dict[str, tuple[str, str]] = {
+    "demo": ("--recording {missing}", "--recording {bad}"),
+    "record": ("{tmp}/o.mcap --bus-config {missing}", "{tmp}/o.mcap --bus-config {bad}"),
+    "replay": ("{missing}", "{bad}"),
+    "inspect": ("{missing}", "{bad}"),
+    "recover": ("{missing} {tmp}/o.mcap", "{bad} {tmp}/o.mcap"),
+    "schemas export": ("{bad}/s", "{bad}/x/s"),
+    "router": ("--bus-config {missing}", "--bus-config {bad}"),
+    "up": ("--config {missing}", "--config {bad}"),
+    "status": ("--config {missing}", "--config {bad}"),
+    "alerts": ("--config {missing}", "--config {bad}"),
+    "plant simulate": ("--config {missing} --out {tmp}/o.mcap", "--config {bad} --out {tmp}/o"),
+    "rtd analyze": ("{missing} --out {tmp}/o", "{bad} --out {tmp}/o"),
+    "rtd funnel": ("{missing} --out {tmp}/o", "{bad} --out {tmp}/o"),
+    "rtd lots": ("{missing}", "{bad}"),
+    "rtd reproduce": ("--out {bad}/o", "--out {bad}/x/o"),
+    "dem run": ("{missing}", "{bad}"),
+    "calibrate design": ("--levels {missing} --out {tmp}/o", "--levels {bad} --out {tmp}/o"),
+    "calibrate fit": ("{missing}", "{bad}"),
+    "calibrate solve": ("--targets {missing}", "--targets {bad}"),
+    "calibrate campaign": ("{missing} --results {missing}", "{bad} --results {bad}"),
+    "feeder simulate": ("{missing} --out {tmp}/o", "{bad} --out {tmp}/o"),
+    "feeder fit-ff": ("{missing}", "{bad}"),
+    "mixing compute": ("{missing} --out {tmp}/o", "{bad} --out {tmp}/o"),
+    "mixing blender": ("{missing} --runs 1 --out {tmp}/o", "{bad} --runs 1 --out {tmp}/o"),
+    "compartment build": ("{missing} --out {tmp}/o", "{bad} --out {tmp}/o"),
+    "compartment simulate": ("{missing}", "{bad}"),
+    "compartment synthetic": ("{nodir}/o", "{bad}/o"),
+    "close-loop": (
+        "{missing} --config {missing} --report {tmp}/r.json",
+        "{missing} --config {bad} --report {tmp}/r.json",
+    ),
+}
+
+
+def run(argv: list[str], capsys) -> tuple[int, str]:
+    try:
+        rc = main(argv)
+    except SystemExit as exc:  # argparse
+        rc = exc.code
+    return rc, capsys.readouterr().err
+
+
+def check_one_line(rc: int, err: str) -> str:
+    lines = err.strip().splitlines()
+    assert rc == 2, err
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def test_every_sub_command_has_its_cases():
+    assert set(CASES) == leaf_commands()
+
+
+@pytest.mark.parametrize("command", sorted(CASES))
+def test_missing_file_bad_config_and_bad_argument_are_one_line_errors(command, tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: [unclosed\n")
+    fill = {
+        "missing": str(tmp_path / "absent.file"),
+        "bad": str(bad),
+        "tmp": str(tmp_path),
+        "nodir": str(tmp_path / "no" / "such"),
+    }
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for case in CASES[command]:
+        argv = [*command.split(), *case.format(**fill).split()]
+        check_one_line(*run(argv, capsys))
+    first = CASES[command][0].format(**fill).split()
+    line = check_one_line(*run([*command.split(), *first, "--no-such-option"], capsys))
+    assert "--no-such-option" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing created
+
+
+def test_an_effect_with_unknown_keys_is_refused(tmp_path, capsys):
+    out = tmp_path / "o.mcap"
+    argv = ["plant", "simulate", "--out", str(out), "--duration", "10"]
+    line = check_one_line(*run([*argv, "--effect", '{"name":"extra_delay","delay_s":10}'], capsys))
+    assert "--effect keys must be among" in line and "delay_s" in line
+    line = check_one_line(*run([*argv, "--effect", '{"name":"nosuch"}'], capsys))
+    assert "nosuch" in line
+    assert not out.exists()
