@@ -113,3 +113,12 @@ def test_an_effect_with_unknown_keys_is_refused(tmp_path, capsys):
     line = check_one_line(*run([*argv, "--effect", '{"name":"nosuch"}'], capsys))
     assert "nosuch" in line
     assert not out.exists()
+
+
+def test_an_output_in_a_missing_folder_is_refused_before_any_work(tmp_path, capsys):
+    """`compartment build` used to compute before finding its output folder missing."""
+    fields = tmp_path / "fields.npz"
+    fields.write_bytes(b"")
+    out = tmp_path / "no" / "model.json"
+    line = check_one_line(*run(["compartment", "build", str(fields), "--out", str(out)], capsys))
+    assert "the output's folder does not exist" in line and not out.parent.exists()
