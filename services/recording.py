@@ -1051,6 +1051,12 @@ class BusReplay:
         self.pubs: dict[str, Any] = {}
         self._baseline: Any = None
 
+    @property
+    def _line(self) -> str:
+        """The line whose services are pinged: the twin's (a secured bus lets a tool query its
+        own line's keys only), any line without one."""
+        return self.spec.name if self.spec is not None else "*"
+
     def __enter__(self) -> BusReplay:
         from services.bus import ping
 
@@ -1068,7 +1074,7 @@ class BusReplay:
                 time.sleep(0.02)
             if self.settle_s > 0:
                 svc.stop_flag.wait(self.settle_s)
-            self._baseline = ping(svc.session)
+            self._baseline = ping(svc.session, self._line)
             if history:
                 self._refuse_past()
         except BaseException:
@@ -1140,6 +1146,7 @@ class BusReplay:
             if self.svc.session is not None and not self.svc.stopping:
                 health = barrier(
                     self.svc.session,
+                    self._line,
                     timeout_s=self.drain_timeout_s,
                     sent=dict(self.sent),
                     baseline=self._baseline,

@@ -433,6 +433,7 @@ class Service:
     def drain(self, timeout_s: float = 10.0, **kwargs: Any) -> list[ServiceHealth]:
         """Wait until every service on the bus processed what this one sent (see
         ``services.bus.barrier``); call before closing after a burst of publications."""
+        kwargs.setdefault("line", self.line if self.spec is not None else "*")
         return barrier(self._require_session(), timeout_s=timeout_s, **kwargs)
 
     def _on_ping(self, query: zenoh.Query) -> None:
