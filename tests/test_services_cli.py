@@ -93,3 +93,54 @@ def test_up_status_alerts_and_clean_stop(config, tmp_path):
         if up.poll() is None:
             up.kill()
         log.close()
+
+
+def running(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie (an orphan reaped late by init is
+    dead)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return alive(pid)
+    return state not in ("Z", "X")
+
+
+def test_no_orphan_after_kill_9_of_twin_up_and_one_twin_per_line(config, tmp_path):
+    """A second `twin up` of a running line is refused in one line (exit 2); after SIGKILL of
+    `twin up` its services stop by themselves (parent-death signal), none is left running, and
+    no lock is left held."""
+    log = (tmp_path / "up.log").open("w")
+    up = subprocess.Popen(
+        [sys.executable, "-m", "services.cli.main", "up", "--config", str(config)],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    pids: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and len(pids) < 2:
+            r = twin("status", "--config", str(config), "--json", "--timeout", "1.2")
+            if r.returncode == 0:
+                status = json.loads(r.stdout)
+                pids = [
+                    status[n]["pid"] for n in ("feeder", "blender") if "pid" in status.get(n, {})
+                ]
+            time.sleep(0.5)
+        assert len(pids) == 2, "services not up"
+        second = twin("up", "--config", str(config))
+        assert second.returncode == 2
+        [line] = second.stderr.strip().splitlines()
+        assert line.startswith("error: a twin of line line1 is already running, pid ")
+        up.send_signal(signal.SIGKILL)
+        up.wait(timeout=10)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and any(running(p) for p in pids):
+            time.sleep(0.2)
+        assert not any(running(p) for p in pids), [p for p in pids if running(p)]
+    finally:
+        if up.poll() is None:
+            up.kill()
+        for p in pids:
+            if running(p):
+                os.kill(p, signal.SIGKILL)
+        log.close()
