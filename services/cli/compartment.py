@@ -151,8 +151,8 @@ def _save_figures(figures: dict, out: Path) -> None:
 
 
 def cmd_build(args: argparse.Namespace) -> int:
-    from twin_core.compartment import load_fields
     from services.cli.bus import check_output_file
+    from twin_core.compartment import load_fields
     from twin_core.compartment.build import BuildOptions, build_blender_model, load_transit_times
 
     check_output_file(args.out)
