@@ -11,6 +11,7 @@ from schemas import keys
 from schemas.line import LineSpec, TracerPulse
 from schemas.messages import Event, FeederFlow, MeasuredConcentration, PredictedConcentration
 from twin_core.online.blender import BlenderPredictor, declared_kernel
+from twin_core.online.merge import WatermarkMerger
 from twin_core.online.oos import OosCore
 from twin_core.plant import simulate_line
 from twin_core.plant.messages import run_messages, simulate_messages
@@ -62,6 +63,37 @@ def test_an_announced_tracer_pulse_is_traced_early():
     assert len(opened) == 1 and opened[0].t < lo
     d = core.deciders["api"]
     assert d.confirmed_["predicted"] == 1 and d.confirmed_["measured"] == 1
+
+
+def test_no_blind_start_the_first_excursion_is_decided_on_its_last_sample():
+    """At start the inlet stream holds its ticks ``inlet_hold_s`` (15 s) of plant time for late
+    tracer events; its watermark (``WatermarkMerger.advance``) lets the measured decisions go on:
+    three NIR samples out of specification at t = 2, 3, 4 s open an episode when the sample at
+    4 s arrives, not 15 s of plant time later (the blind start of the latency benchmark)."""
+    spec = spec_with(services=["blender", "oos"])
+    core = OosCore(spec)
+    assert core.inlet_hold_s >= 10.0
+    opened_at = None
+    for i in range(8):
+        t = float(i)
+        outs = []
+        for f in spec.feeders:
+            outs += core.flow(f.id, t, f.setpoint_kg_h)
+        outs += core.predicted("api", t, 10.0)
+        outs += core.measured("api", t, 13.0 if 2 <= i <= 4 else 10.0)
+        if opened_at is None and any(o.id.endswith(".open") for o in outs):
+            opened_at = t
+    assert opened_at == 4.0
+
+
+def test_watermark_advance_releases_without_an_item_and_keeps_the_order():
+    """A punctuation moves a stream's watermark: items of the other streams up to it are
+    released in time order; an item of that stream at a later time is released after them."""
+    m = WatermarkMerger(["inlet", "measured"])
+    assert m.push("measured", 1.0, "a") == [] and m.push("measured", 2.0, "b") == []
+    assert [x[2] for x in m.advance("inlet", 1.5)] == ["a"]
+    assert m.advance("inlet", 0.5) == []  # a watermark never goes back
+    assert [x[2] for x in m.push("inlet", 2.0, "i")] == ["i", "b"]
 
 
 def test_decisions_do_not_depend_on_arrival_order():

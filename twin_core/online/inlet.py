@@ -314,6 +314,12 @@ class InletStream:
         return len(self._held)
 
     @property
+    def oldest_held_t(self) -> float | None:
+        """Plant time of the oldest held tick: no tick released later is older (None when
+        nothing is held)."""
+        return self._held[0][0] if self._held else None
+
+    @property
     def newest_held_t(self) -> float | None:
         """Plant time of the newest held tick (None when nothing is held)."""
         return self._held[-1][0] if self._held else None

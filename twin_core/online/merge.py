@@ -3,7 +3,9 @@
 Items are released in (t, stream order, arrival) order once every stream has reached at least
 that time (the watermark is the minimum over the streams of their latest time; a stream that has
 delivered nothing yet holds everything back): the result does not depend on how the streams
-interleaved in transit (after a restart, history arrives stream by stream).
+interleaved in transit (after a restart, history arrives stream by stream). A stream that knows
+it will deliver nothing before some time says so with :meth:`WatermarkMerger.advance` (a
+punctuation, as in stream processors), so that the others are not held back by its silence.
 :meth:`WatermarkMerger.release_all` drains everything (end of stream, or a stream known to be
 silent).
 """
@@ -45,6 +47,18 @@ class WatermarkMerger:
         self.last[stream] = t
         heapq.heappush(self._heap, (t, self.order[stream], self._n, stream, item))
         self._n += 1
+        if len(self.last) < len(self.order):
+            return []
+        return self._release(min(self.last.values()))
+
+    def advance(self, stream: str, t: float) -> list[tuple[str, float, Any]]:
+        """``stream`` will deliver nothing before time ``t`` (its watermark moves to ``t`` if
+        later); return the items now releasable, in order."""
+        if stream not in self.order:
+            raise ValueError(f"stream must be one of {list(self.order)}, got {stream!r}")
+        if not math.isfinite(t):
+            raise ValueError(f"t must be finite, got {t!r}")
+        self.last[stream] = max(self.last.get(stream, -math.inf), t)
         if len(self.last) < len(self.order):
             return []
         return self._release(min(self.last.values()))

@@ -195,9 +195,22 @@ class OosCore:
         """One feeder flow (kg/h)."""
         if not self._fresh("flow", feeder, t):
             return []
-        return self._merge_inlet(
+        out = self._merge_inlet(
             self.inlet.push(feeder, t, FeederSample(float(flow_kg_h), bool(refilling)))
         )
+        return out + self._advance_inlet()
+
+    def _advance_inlet(self) -> list[DiverterOutput]:
+        """The inlet stream's watermark while its ticks are held: none released later enters
+        the merge before the oldest held one, ``oldest + inlet_lead_s``. Without it the merge
+        waited for the first released tick, ``inlet_hold_s`` of plant time after the start (or
+        a restart), holding every measured decision of that stretch back (a blind start)."""
+        oldest = self.inlet.oldest_held_t
+        if oldest is None:
+            return []
+        # strictly before the oldest held tick's merge time: it, not yet merged, goes first there
+        mark = math.nextafter(oldest + self.inlet_lead_s, -math.inf)
+        return self._process(self.merger.advance("inlet", mark))
 
     def release_inlet(self) -> list[DiverterOutput]:
         """Release the inlet ticks that have waited long enough (:class:`InletStream`)."""
