@@ -34,6 +34,7 @@ from schemas.messages import (
     OosAlert,
     PredictedConcentration,
     RtdEstimate,
+    RtdSkipped,
     ServiceHealth,
 )
 from services.bus import HistoryFeed, free_port, open_session
@@ -110,6 +111,7 @@ class _Tap:
         self.alerts: dict[str, OosAlert] = {}
         self.diverts: dict[str, DivertCommand] = {}
         self.rtd: list[RtdEstimate] = []
+        self.rtd_skipped: list[RtdSkipped] = []
         self.findings: dict[str, ModelFinding] = {}
         self.health: dict[str, ServiceHealth] = {}
         self.pred: dict[float, float] = {}
@@ -163,6 +165,9 @@ class _Tap:
             HistoryFeed(self.session, keys.oos_alert(line), cb(OosAlert, on_alert)),
             HistoryFeed(self.session, keys.divert_command(line), cb(DivertCommand, on_divert)),
             HistoryFeed(self.session, keys.rtd_estimate(line), cb(RtdEstimate, self.rtd.append)),
+            HistoryFeed(
+                self.session, keys.rtd_skipped(line), cb(RtdSkipped, self.rtd_skipped.append)
+            ),
             HistoryFeed(
                 self.session,
                 keys.model_finding(line),
@@ -290,7 +295,8 @@ def report_markdown(report: dict[str, Any]) -> str:
         f"- predictions: {report['predictions']}; measured - predicted: "
         + (f"bias {err['bias']:+.3f}, RMSE {err['rmse']:.3f} % w/w" if err["n"] else "n/a"),
         f"- OOS alerts: {len(report['alerts'])}; divert commands: "
-        f"{len(report['divert_commands'])}; RTD estimates: {len(report['rtd_estimates'])}; "
+        f"{len(report['divert_commands'])}; RTD estimates: {len(report['rtd_estimates'])} "
+        f"(pulses without one: {len(report['rtd_skipped'])}); "
         f"duplicates seen: {report['duplicates_seen']}",
         "",
         "| alert | outlet window (s) | peak deviation (% w/w) | cause |",
@@ -306,6 +312,10 @@ def report_markdown(report: dict[str, Any]) -> str:
         lines.append(
             f"\nRTD estimate (pulse at {r['pulse_t_s']} s): {r['model']} {ps}, "
             f"mean residence time {r['mean_residence_time_s']:.1f} s"
+        )
+    for r in report["rtd_skipped"]:
+        lines.append(
+            f"\nRTD pulse at {r['pulse_t_s']} s without estimate ({r['reason']}): {r['detail']}"
         )
     if report["model_findings"]:
         lines += [
@@ -367,6 +377,7 @@ def run_full_twin_demo(
         ],
         "divert_commands": [d.model_dump(mode="json") for d in tap.diverts.values()],
         "rtd_estimates": [r.model_dump(mode="json") for r in tap.rtd],
+        "rtd_skipped": [r.model_dump(mode="json") for r in tap.rtd_skipped],
         "model_findings": [
             f.model_dump(mode="json") for f in sorted(tap.findings.values(), key=lambda f: f.t)
         ],
