@@ -31,9 +31,10 @@ import secrets
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import get_args
 
 from schemas import keys
-from schemas.bus_config import AccessControl, BusConfig, UserPassword
+from schemas.bus_config import AccessControl, AclMessage, BusConfig, UserPassword
 from schemas.line import LineSpec
 
 #: identities of the tools (not supervised services)
@@ -44,17 +45,7 @@ PASSWORD_ENV = "TWIN_BUS_PASSWORD"
 PASSWORD_FILE_ENV = "TWIN_BUS_PASSWORD_FILE"
 
 _INGRESS = ["ingress"]
-_EVERY_MESSAGE = [
-    "put",
-    "delete",
-    "declare_subscriber",
-    "query",
-    "declare_queryable",
-    "reply",
-    "liveliness_token",
-    "declare_liveliness_subscriber",
-    "liveliness_query",
-]
+_EVERY_MESSAGE = list(get_args(AclMessage))
 
 
 def published_keys(spec: LineSpec, identity: str) -> list[str]:
