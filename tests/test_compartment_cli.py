@@ -118,23 +118,23 @@ def test_cli_build_and_simulate(tmp_path, capsys):
     assert (figs / "simulation.png").exists()
 
 
-def test_cli_bad_input(tmp_path, caplog):
+def test_cli_bad_input(tmp_path, capsys):
     assert (
         main(
             ["compartment", "build", str(tmp_path / "none.npz"), "--out", str(tmp_path / "m.json")]
         )
         == 2
     )
-    assert "does not exist" in caplog.text
+    assert "does not exist" in capsys.readouterr().err
     bad = tmp_path / "bad.npz"
     np.savez(bad, x_edges=np.arange(3.0))
     assert main(["compartment", "build", str(bad), "--out", str(tmp_path / "m.json")]) == 2
-    assert "missing key" in caplog.text
+    assert "missing key" in capsys.readouterr().err
 
 
-def test_cli_simulate_bad_input(tmp_path, caplog):
+def test_cli_simulate_bad_input(tmp_path, capsys):
     assert main(["compartment", "simulate", str(tmp_path / "none.json")]) == 2
-    assert "does not exist" in caplog.text
+    assert "does not exist" in capsys.readouterr().err
     fields, model = tmp_path / "f.npz", tmp_path / "m.json"
     assert main(["compartment", "synthetic", str(fields), "--shape", "4", "5", "5"]) == 0
     assert (
@@ -154,8 +154,8 @@ def test_cli_simulate_bad_input(tmp_path, caplog):
         == 0
     )
     assert main(["compartment", "simulate", str(model), "--step-at", "5"]) == 2
-    assert "step_at needs step_to" in caplog.text
+    assert "step_at needs step_to" in capsys.readouterr().err
     assert main(["compartment", "simulate", str(model), "--dt", "0"]) == 2
     assert main(["compartment", "simulate", str(model), "--scale-at", "1", "--rpm-to", "50"]) == 2
-    assert "needs rpm_basis" in caplog.text
+    assert "needs rpm_basis" in capsys.readouterr().err
     assert main(["compartment"]) == 2
