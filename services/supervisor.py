@@ -91,7 +91,10 @@ class Child:
 
 
 def busy_endpoints(endpoints: list[str]) -> list[str]:
-    """The TCP endpoints (``tcp/<host>:<port>``) on which a listener cannot bind now."""
+    """The TCP endpoints (``tcp/<host>:<port>``) on which a listener cannot bind now.
+
+    Bound as the router binds (``SO_REUSEADDR``): a port that only has connections of a stopped
+    run in TIME_WAIT is free; a port another process listens on is busy."""
     busy = []
     for ep in endpoints:
         proto, _, addr = ep.partition("/")
@@ -101,6 +104,7 @@ def busy_endpoints(endpoints: list[str]) -> list[str]:
         host = host.strip("[]")
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
                 s.bind((host, int(port)))
             except OSError:
