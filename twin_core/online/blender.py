@@ -13,7 +13,8 @@ effects (dead zone, bypass, extra delay, back-mixing: ``twin_core.plant.model.rt
 diverter uses the same object, so it follows the model the blender adopted.
 
 :class:`BlenderPredictor` adds the adopted feeder-stage effects (e.g. a refill surge turns each
-feeder's reported flow into the delivered one, causally, from the feeder's recent flows).
+feeder's reported flow into the delivered one, causally, from the feeder's recent flows) and the
+unit-stage ones (a component's mass partly lost in the blender).
 Effects that grow with time from the start of their window (drifts) and sensor effects (the
 probe, not the outlet) are not adopted.
 
@@ -90,7 +91,7 @@ class BlenderKernel:
         """Can this effect change the prediction of the outlet (see the module docstring)?"""
         if not effect.time_invariant or effect.stage == "sensor":
             return False
-        return effect.stage == "feeder" or self.rtd_model is not None
+        return effect.stage in ("feeder", "unit") or self.rtd_model is not None
 
     def adopt_estimate(self, model: str, params: Mapping[str, float]) -> np.ndarray:
         """An adopted RTD estimate: the new base E(t) (the adopted rtd effects stay on top of it
@@ -229,6 +230,18 @@ class BlenderPredictor:
             qq = e.apply_flow(tt, qq, rr)
         return float(qq[-1])
 
+    def _through_unit(
+        self, component: str, t: float, mass: float, steady: float
+    ) -> tuple[float, float]:
+        """A component's inflow (and its steady value) through the adopted unit-stage effects
+        (e.g. a fraction lost in the blender); time-invariant ones only are adopted."""
+        for e in sorted(self.effects, key=lambda e: e.order):
+            if e.stage == "unit" and e.target in (None, component):
+                tt = np.array([t])
+                mass = float(e.apply_component(tt, np.array([mass]))[0])
+                steady = float(e.apply_component(tt, np.array([steady]))[0])
+        return mass, steady
+
     def add_pulse(self, component: str, t_s: float, mass_kg: float, duration_s: float) -> bool:
         """A tracer pulse entering the inlet; its flow in ticks already predicted corrects
         their convolution input (see the module docstring). Returns False for a pulse already
@@ -273,6 +286,8 @@ class BlenderPredictor:
         steady = dict(mass)
         for c, q in tick.tracer_kg_h.items():
             mass[c] += q
+        for c in self.comp_names:
+            mass[c], steady[c] = self._through_unit(c, tick.t, mass[c], steady[c])
         if self.conv is None:
             self.conv = {
                 c: StreamingConvolver(self.kernel.e, self.spec.dt_s, initial=steady[c])

@@ -4,7 +4,13 @@ An effect acts at one stage of the line model (see ``twin_core.plant.model``):
 
 - ``"feeder"``: delivered flow differs from the flow the feeder reports (the twin's input);
 - ``"rtd"``: the blender impulse response E(t) differs from the declared one;
+- ``"unit"``: the unit does not pass on all of a component's mass (lost, held up);
 - ``"sensor"``: the NIR reading differs from the outlet concentration.
+
+Feeder, rtd and unit effects change the product (the real outlet composition: ``side`` is
+``"product"``); sensor effects change only the probe's reading of it (``side`` ``"probe"``). A
+product-side and a probe-side explanation of the same residual are not equivalent for the
+product: the close-loop reports both and acts on the product-side one.
 
 Each effect is one small class registered in :data:`EFFECTS` under its ``name``, with its
 parameters declared as :class:`ParamSpec` (default, bounds, unit, meaning). The default of
@@ -44,13 +50,16 @@ class ParamSpec:
 
 EFFECTS: dict[str, type[Effect]] = {}
 
+#: the stages of the line model an effect can act at (see the module docstring)
+STAGES = ("feeder", "rtd", "unit", "sensor")
+
 
 def register(cls: type[Effect]) -> type[Effect]:
     """Class decorator: add an effect class to :data:`EFFECTS` under ``cls.name``."""
     if cls.name in EFFECTS:
         raise ValueError(f"effect name must be unique, got duplicate {cls.name!r}")
-    if cls.stage not in ("feeder", "rtd", "sensor"):
-        raise ValueError(f"effect stage must be feeder/rtd/sensor, got {cls.stage!r}")
+    if cls.stage not in STAGES:
+        raise ValueError(f"effect stage must be one of {STAGES}, got {cls.stage!r}")
     EFFECTS[cls.name] = cls
     return cls
 
@@ -58,7 +67,8 @@ def register(cls: type[Effect]) -> type[Effect]:
 class Effect:
     """Base class. Parameters are given as keyword arguments and checked against bounds.
 
-    Feeder-stage effects also take ``target``: the feeder they act on (None: every feeder).
+    Feeder-stage effects also take ``target``: the feeder they act on (None: every feeder);
+    unit-stage effects the component they act on (None: every component).
     """
 
     name: ClassVar[str] = ""
@@ -87,6 +97,11 @@ class Effect:
             self.values[p.name] = v
 
     # -- helpers -------------------------------------------------------------------------
+    @property
+    def side(self) -> str:
+        """``"probe"`` for sensor-stage effects, ``"product"`` for the others (module docstring)."""
+        return "probe" if self.stage == "sensor" else "product"
+
     @classmethod
     def bounds(cls) -> tuple[np.ndarray, np.ndarray]:
         return (
@@ -131,6 +146,11 @@ class Effect:
     ) -> np.ndarray:
         """feeder stage: delivered flow from the reported flow of the target feeder."""
         return flow
+
+    def apply_component(self, t: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """unit stage: the mass flow (kg/s) of the target component the unit passes on, from
+        the one that enters it (feeders and tracer pulses)."""
+        return q
 
     def apply_sensor(self, t: np.ndarray, c: np.ndarray) -> np.ndarray:
         """sensor stage: sensor signal (before noise) from the outlet concentration."""
@@ -343,6 +363,84 @@ class FeedFactorDrift(Effect):
         if r == 0.0:
             return flow
         return flow * np.maximum(1.0 + r * (t - t[0]) / 3600.0, 0.0)
+
+
+@register
+class FeedBias(Effect):
+    """Delivered-vs-reported feed bias: delivered = reported (1 + b), constant.
+
+    The feeder reports its gravimetric flow estimate (the slope of its load-cell weight); a
+    load cell off calibration, a weight signal disturbed by vibration or a hopper touched by a
+    hose biases that estimate, and the controller then holds the *reported* flow at its set
+    point while the powder delivered differs by a fixed fraction (Engisch & Muzzio, J. Pharm.
+    Innov. 11:1, 2016: LIW flow estimation). Product-side: the outlet composition is off.
+    """
+
+    name = "feed_bias"
+    stage = "feeder"
+    doc = "relative bias b of the delivered vs the reported flow"
+    params = (ParamSpec("bias", 0.0, -0.5, 0.5, "1", "delivered / reported - 1", (0.05, -0.05)),)
+
+    def apply_flow(
+        self, t: np.ndarray, flow: np.ndarray, refilling: np.ndarray | None
+    ) -> np.ndarray:
+        b = self.values["bias"]
+        return flow if b == 0.0 else flow * (1.0 + b)
+
+
+# ---------------------------------------------------------------------------------------
+# unit (mass balance) effects
+# ---------------------------------------------------------------------------------------
+@register
+class ComponentLoss(Effect):
+    """A fraction of one component's mass does not reach the outlet (lost in the unit):
+
+        m_out,i = (1 - l) m_in,i   (the sink of an open mass balance)
+
+    API sticking to the blade and wall (a coating that is scraped off to waste), drawn off by
+    the dust extraction, or segregated into a region that is emptied at cleaning; tracer pulses
+    of the component lose the same fraction. Nearly the same reading as a probe gain
+    g = (1 - l) / (1 - l c / 100): only an assay of the product tells them apart.
+    """
+
+    name = "component_loss"
+    stage = "unit"
+    doc = "fraction l of the component's mass lost in the unit"
+    params = (
+        ParamSpec("fraction", 0.0, 0.0, 0.6, "1", "fraction of the component lost", (0.03, 0.1)),
+    )
+
+    def apply_component(self, t: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return q * (1.0 - self.values["fraction"])
+
+
+@register
+class Holdup(Effect):
+    """The unit holds up part of one component while the record runs: a store of M kg fills
+    from empty at the start of the record with time constant tau,
+
+        m_out,i(t) = max(m_in,i(t) - (M / tau) exp(-(t - t0) / tau), 0)
+
+    (API building a layer on the blender's blade and wall after start-up or cleaning until the
+    layer saturates; the component's outlet content is low at first and recovers with tau).
+    Grows from the start of its record, like a drift: reported, not adopted online.
+    """
+
+    name = "holdup"
+    stage = "unit"
+    time_invariant = False
+    doc = "component mass M held up by the unit, filling with time constant tau from the start"
+    params = (
+        ParamSpec("mass_g", 0.0, 0.0, 500.0, "g", "mass held up at saturation", (10.0, 50.0)),
+        ParamSpec("tau_s", 300.0, 30.0, 7200.0, "s", "filling time constant", (150.0, 900.0)),
+    )
+
+    def apply_component(self, t: np.ndarray, q: np.ndarray) -> np.ndarray:
+        m = self.values["mass_g"] / 1000.0
+        if m == 0.0:
+            return q
+        tau = self.values["tau_s"]
+        return np.maximum(q - (m / tau) * np.exp(-(t - t[0]) / tau), 0.0)
 
 
 # ---------------------------------------------------------------------------------------

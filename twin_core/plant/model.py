@@ -15,7 +15,9 @@ declared baseline offset of the sensor; the sensor noise (``twin_core.plant.nir`
 of the prediction.
 
 Candidate effects (``twin_core.plant.effects``) enter at their stage: feeder effects change the
-delivered flows, rtd effects change E(t), sensor effects change the signal.
+delivered flows, rtd effects change E(t), unit effects the mass of a component the unit passes
+on, sensor effects change the signal. :class:`OutletModel` evaluates the outlet of one set of
+inputs for many effect sets (the close-loop's fits) with the convolutions' spectra kept.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import fft as sp_fft
 
 from schemas.line import BlenderModelConfig, LineConfig, TracerPulse
 from twin_core.plant.effects import Effect, make_effect
@@ -88,12 +91,23 @@ def rtd_kernel(
     """
     from twin_core.rtd.models import model_e
 
-    rtd_eff = sorted((e for e in effects if e.stage == "rtd"), key=lambda e: e.order)
+    params = rtd_params(blender, effects)
+    return apply_rtd_effects(blender, tk, model_e(blender.model, params, tk), effects)
+
+
+def rtd_params(blender: BlenderModelConfig, effects: Sequence[Effect] = ()) -> dict[str, float]:
+    """The blender model's parameters changed by the rtd-stage effects' ``blender_params``."""
     params = dict(blender.params)
-    for e in rtd_eff:
+    for e in sorted((e for e in effects if e.stage == "rtd"), key=lambda e: e.order):
         params = e.blender_params(blender.model, params)
-    e_t = model_e(blender.model, params, tk)
-    for e in rtd_eff:
+    return params
+
+
+def apply_rtd_effects(
+    blender: BlenderModelConfig, tk: np.ndarray, e_t: np.ndarray, effects: Sequence[Effect] = ()
+) -> np.ndarray:
+    """Each rtd-stage effect's ``apply_rtd``, in order, on the model's E(t) sampled on ``tk``."""
+    for e in sorted((e for e in effects if e.stage == "rtd"), key=lambda e: e.order):
         e_t = e.apply_rtd(tk, e_t, blender)
     return e_t
 
@@ -123,25 +137,39 @@ def require_rtd_blender(config: LineConfig) -> None:
         )
 
 
-def _inlet_parts(
-    inputs: LineInputs, effects: Sequence[Effect] = ()
-) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    t = inputs.t_s
-    dt = inputs.dt_s
-    feed_eff = [e for e in effects if e.stage == "feeder"]
-    feed: dict[str, np.ndarray] = {}
-    for name, f in inputs.flows_kg_h.items():
-        q = f / 3600.0
-        for e in feed_eff:
-            if e.target is None or e.target == name:
-                q = e.apply_flow(t, q, inputs.refilling.get(name))
-        c = inputs.components[name]
-        feed[c] = feed.get(c, 0.0) + q
+def _apply_feeder_effects(inputs: LineInputs, feeder: str, effects: Sequence[Effect]) -> np.ndarray:
+    """Delivered mass flow (kg/s) of one feeder: its reported flow through the feeder-stage
+    effects that target it (or every feeder), in their order."""
+    q = inputs.flows_kg_h[feeder] / 3600.0
+    for e in sorted(effects, key=lambda e: e.order):
+        if e.stage == "feeder" and (e.target is None or e.target == feeder):
+            q = e.apply_flow(inputs.t_s, q, inputs.refilling.get(feeder))
+    return q
+
+
+def _apply_unit_effects(
+    t: np.ndarray, component: str, q: np.ndarray, q0: float, effects: Sequence[Effect]
+) -> tuple[np.ndarray, float]:
+    """The component's mass flow through the unit-stage effects acting on it (``target``: the
+    component, or None for every component): the inflow ``q`` and the steady history ``q0``
+    (time-invariant effects only: a time-variant one starts with the record)."""
+    for e in sorted(effects, key=lambda e: e.order):
+        if e.stage == "unit" and (e.target is None or e.target == component):
+            q = e.apply_component(t, q)
+            if e.time_invariant:
+                q0 = float(e.apply_component(t[:1], np.array([q0]))[0])
+    return q, q0
+
+
+def _tracer_flows(inputs: LineInputs) -> dict[str, np.ndarray]:
+    """Tracer pulses as mass flows per component (kg/s, :func:`pulse_bin_flow`)."""
     tracer: dict[str, np.ndarray] = {}
     for p in inputs.tracers:
-        q = pulse_bin_flow(t, dt, p.t_s, p.t_s + p.duration_s, p.mass_kg / p.duration_s)
+        q = pulse_bin_flow(
+            inputs.t_s, inputs.dt_s, p.t_s, p.t_s + p.duration_s, p.mass_kg / p.duration_s
+        )
         tracer[p.component] = tracer.get(p.component, 0.0) + q
-    return feed, tracer
+    return tracer
 
 
 def inlet_component_flows(
@@ -149,12 +177,146 @@ def inlet_component_flows(
 ) -> dict[str, np.ndarray]:
     """Inlet mass flow per component (kg/s) on inputs.t_s: delivered feeder flows (feeder-stage
     effects applied to their target feeder) plus tracer pulses (:func:`pulse_bin_flow`: mass /
-    duration over the pulse, spread over the grid bins it overlaps, so the mass is exact)."""
-    feed, tracer = _inlet_parts(inputs, effects)
-    out = {c: np.asarray(q, dtype=float) for c, q in feed.items()}
-    for c, q in tracer.items():
-        out[c] = out.get(c, np.zeros_like(inputs.t_s)) + q
-    return out
+    duration over the pulse, spread over the grid bins it overlaps, so the mass is exact), then
+    the unit-stage effects of the component (what the unit passes on)."""
+    return {c: q for c, (q, _) in OutletModel(inputs).inflows(effects).items()}
+
+
+#: E(t) beyond the sample where less than this mass is left is not convolved (its contribution
+#: to an outlet mass flow is below this fraction of the inflow)
+KERNEL_TAIL_MASS = 1e-12
+
+
+class OutletModel:
+    """The declared line model's outlet on one set of inputs, evaluated for many effect sets.
+
+    c_i = 100 (E * m_i) / (E * sum m) (module docstring) by FFT convolution: the spectra of the
+    component inflows and of E(t) are kept (keyed by the effects that change them), so an effect
+    set that changes only E(t) costs one forward and two inverse real FFTs, one that changes
+    one feeder's flow one forward and two inverse. E(t) is convolved up to the sample where less
+    than ``KERNEL_TAIL_MASS`` of it is left (shorter transforms). The line's history before
+    t_s[0] (steady state at the first flows) adds q0 S(t), S = 1 - F.
+    """
+
+    def __init__(self, inputs: LineInputs, blender: BlenderModelConfig | None = None) -> None:
+        self.inputs = inputs
+        self.blender = blender
+        self.t = inputs.t_s
+        self.n = self.t.size
+        self.dt = inputs.dt_s
+        self.tg = self.t - self.t[0]
+        self.tracer = _tracer_flows(inputs)
+        self.components = sorted(set(inputs.components.values()) | set(self.tracer))
+        self._spectra: dict[tuple, np.ndarray] = {}
+        self._kernels: dict[tuple, tuple[np.ndarray, np.ndarray, int]] = {}
+        self._base: dict[tuple, np.ndarray] = {}
+        self._inflows: dict[tuple, dict[str, tuple[np.ndarray, float]]] = {}
+
+    # -- inflows -------------------------------------------------------------------------
+    def inflows(self, effects: Sequence[Effect] = ()) -> dict[str, tuple[np.ndarray, float]]:
+        """Component -> (inflow of the unit, kg/s, steady history value q0) under the feeder-
+        and unit-stage effects."""
+        key = _effects_key(effects, ("feeder", "unit"))
+        hit = self._inflows.get(key)
+        if hit is not None:
+            return hit
+        inp = self.inputs
+        feed: dict[str, np.ndarray] = {}
+        for name in inp.flows_kg_h:
+            c = inp.components[name]
+            feed[c] = feed.get(c, 0.0) + _apply_feeder_effects(inp, name, effects)
+        out = {}
+        for c in self.components:
+            f = np.asarray(feed.get(c, np.zeros(self.n)), dtype=float)
+            q = f + self.tracer[c] if c in self.tracer else f
+            out[c] = _apply_unit_effects(self.t, c, q, float(f[0]), effects)
+        if len(self._inflows) > 64:
+            self._inflows.clear()
+        self._inflows[key] = out
+        return out
+
+    # -- kernel --------------------------------------------------------------------------
+    def kernel(self, effects: Sequence[Effect] = ()) -> tuple[np.ndarray, np.ndarray, int]:
+        """(E(t) on the record's grid with the rtd-stage effects, survival S = 1 - F, the
+        number of samples of E convolved)."""
+        if self.blender is None:
+            raise ValueError("blender must be given to evaluate the outlet")
+        key = _effects_key(effects, ("rtd",))
+        hit = self._kernels.get(key)
+        if hit is None:
+            from twin_core.rtd.models import model_e
+
+            params = rtd_params(self.blender, effects)
+            pkey = tuple(sorted(params.items()))
+            base = self._base.get(pkey)
+            if base is None:
+                base = self._base[pkey] = model_e(self.blender.model, params, self.tg)
+            e_t = apply_rtd_effects(self.blender, self.tg, base, effects)
+            mass = self.dt * np.cumsum(e_t)
+            survival = np.clip(1.0 - mass, 0.0, None)
+            tail = mass[-1] - mass
+            n_k = (
+                int(np.argmax(tail < KERNEL_TAIL_MASS)) + 1
+                if tail[-1] < KERNEL_TAIL_MASS
+                else self.n
+            )
+            hit = (e_t, survival, max(n_k, 1))
+            if len(self._kernels) > 64:
+                self._kernels.clear()
+            self._kernels[key] = hit
+        return hit
+
+    def _spectrum(self, key: tuple, x: np.ndarray, nfft: int) -> np.ndarray:
+        k = (key, nfft)
+        hit = self._spectra.get(k)
+        if hit is None:
+            hit = sp_fft.rfft(x, nfft)
+            if len(self._spectra) > 256:
+                self._spectra.clear()
+            self._spectra[k] = hit
+        return hit
+
+    # -- outlet --------------------------------------------------------------------------
+    def outlet_mass_flows(
+        self, effects: Sequence[Effect] = (), components: Sequence[str] | None = None
+    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Outlet mass flows (kg/s) of ``components`` (default all) and the total, (E * m_i)
+        plus the history term."""
+        e_t, survival, n_k = self.kernel(effects)
+        flows = self.inflows(effects)
+        nfft = sp_fft.next_fast_len(self.n + n_k - 1, real=True)
+        rtd_key = ("E", _effects_key(effects, ("rtd",)))
+        ek = self._spectrum(rtd_key, e_t[:n_k], nfft)
+        in_key = _effects_key(effects, ("feeder", "unit"))
+        total_spec = 0.0
+        total_q0 = 0.0
+        specs = {}
+        for c, (q, q0) in flows.items():
+            specs[c] = self._spectrum(("q", c, in_key), q, nfft)
+            total_spec = total_spec + specs[c]
+            total_q0 += q0
+        want = self.components if components is None else list(components)
+        out = {}
+        for c in want:
+            if c not in flows:
+                continue
+            y = sp_fft.irfft(specs[c] * ek, nfft)[: self.n] * self.dt
+            out[c] = y + flows[c][1] * survival
+        total = sp_fft.irfft(total_spec * ek, nfft)[: self.n] * self.dt + total_q0 * survival
+        return out, total
+
+    def concentrations(
+        self, effects: Sequence[Effect] = (), components: Sequence[str] | None = None
+    ) -> dict[str, np.ndarray]:
+        """Outlet mass fraction (% w/w) of ``components`` (default all)."""
+        outs, total = self.outlet_mass_flows(effects, components)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return {c: np.where(total > 0, 100.0 * y / total, np.nan) for c, y in outs.items()}
+
+
+def _effects_key(effects: Sequence[Effect], stages: tuple[str, ...]) -> tuple:
+    """Hashable identity of the effects of ``stages`` (name, target, parameter values)."""
+    return tuple((e.name, e.target, tuple(e.vector())) for e in effects if e.stage in stages)
 
 
 def outlet_concentration(
@@ -164,32 +326,13 @@ def outlet_concentration(
 ) -> dict[str, np.ndarray]:
     """Outlet mass fraction of every component, % w/w, c_i = 100 (E*m_i)/(E*sum m).
 
-    The convolution runs on ``inputs.t_s`` with ``twin_core.rtd.convolution.convolve``
-    (rectangle rule, y[n] = dt sum_j u[j] E[n-j]). Before t_s[0] the line is at steady state
-    with the first feeder flows m_i0 (no tracer): that history adds exactly
-    m_i0 S(t), S[n] = 1 - dt sum_{j<=n} E[j] (the fraction of the older material still inside,
-    1 - F(t)), so the line starts full and no warm-up padding is needed.
+    The convolution runs on ``inputs.t_s`` (rectangle rule, y[n] = dt sum_j u[j] E[n-j], by FFT:
+    :class:`OutletModel`). Before t_s[0] the line is at steady state with the first feeder flows
+    m_i0 (no tracer): that history adds exactly m_i0 S(t), S[n] = 1 - dt sum_{j<=n} E[j] (the
+    fraction of the older material still inside, 1 - F(t)), so the line starts full and no
+    warm-up padding is needed.
     """
-    from twin_core.rtd.convolution import convolve
-
-    t = inputs.t_s
-    dt = inputs.dt_s
-    feed, tracer = _inlet_parts(inputs, effects)
-    comp = {c: np.asarray(q, dtype=float) for c, q in feed.items()}
-    for c, q in tracer.items():
-        comp[c] = comp.get(c, np.zeros_like(t)) + q
-    tg = t - t[0]
-    e_t = rtd_kernel(blender, tg, effects)
-    survival = np.clip(1.0 - dt * np.cumsum(e_t), 0.0, None)
-    outs: dict[str, np.ndarray] = {}
-    total = np.zeros(t.size)
-    for c, q in comp.items():
-        q0 = float(np.atleast_1d(feed.get(c, 0.0))[0])  # steady history: feeders, no tracer
-        y = np.asarray(convolve(tg, q, e_t), dtype=float) + q0 * survival
-        outs[c] = y
-        total = total + y
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return {c: np.where(total > 0, 100.0 * y / total, np.nan) for c, y in outs.items()}
+    return OutletModel(inputs, blender).concentrations(effects)
 
 
 def sensor_signal(
