@@ -2,9 +2,12 @@
 
 ``residual_diagnostics`` returns a plain dict (JSON-able) with
 
-- ``bias`` (mean, % w/w) and its z-score using the effective sample size
-  n_eff = n (1 - rho1) / (1 + rho1) (AR(1) variance inflation, Bayley & Hammersley 1946);
-- ``trend`` (OLS slope, % w/w per hour, with the same n_eff correction);
+- ``bias`` (mean, % w/w) and ``trend`` (slope, % w/w per hour) with z-scores: given the noise's
+  whitener (``twin_core.closeloop.noise.NoiseWhitener``), generalised least squares on the
+  innovations, so the z-scores allow for the 1/f noise (the effective sample size of a level is
+  what the coloured noise leaves of it, reported as ``n_effective``); without one, ordinary
+  least squares with n_eff = n (1 - rho1) / (1 + rho1) (AR(1) variance inflation, Bayley &
+  Hammersley 1946), which slow noise fools;
 - ``normalized_mse``: mean of (r / sigma)^2 with sigma the declared noise standard deviation
   (1 when the declared noise explains the residual);
 - ``acf`` (autocorrelation at lags 1..max_lag) and the Ljung-Box statistic (Ljung & Box 1978);
@@ -17,11 +20,14 @@
   (the given events plus ``rpm_change``: steps of a screw speed);
 - ``pulse_tails``: for each tracer pulse, the mean residual in its front (rise), peak and tail
   windows (dead zones and bypasses show in the tail and the front).
+
+:func:`innovation_tests` decides whether a model's innovations are the noise (the honest status
+of ``twin_core.closeloop.identify``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -114,11 +120,14 @@ def residual_diagnostics(
     max_xcorr_lag_s: float = 120.0,
     window_s: float = 120.0,
     pulse_windows: dict[str, tuple[float, float]] | None = None,
+    whitener: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Diagnostics of a residual on the samples ``mask`` (default: all finite). See module.
 
     ``pulse_windows``: {"front": (a, b), "peak": ..., "tail": ...} in s after each pulse
-    (default: 5-25, 25-45, 45-150 s, fitting the Table 6.2 blender).
+    (default: 5-25, 25-45, 45-150 s, fitting the Table 6.2 blender). ``whitener``: the noise's
+    innovations map for ``residual / sigma`` (needs ``sigma``): bias and trend by generalised
+    least squares.
     """
     t = np.asarray(t_s, dtype=float)
     r = np.asarray(residual, dtype=float)
@@ -133,16 +142,24 @@ def residual_diagnostics(
     sd = float(rr.std(ddof=1))
     out: dict[str, Any] = {"n": int(n), "n_effective": neff, "rmse": float(np.sqrt(np.mean(rr**2)))}
     out["mae"] = float(np.mean(np.abs(rr)))
-    out["bias"] = {
-        "mean": float(rr.mean()),
-        "z": float(rr.mean() / (sd / np.sqrt(neff)) if sd > 0 else 0.0),
-    }
-    x = (tt - tt.mean()) / 3600.0
-    sxx = float(x @ x)
-    slope = float(x @ (rr - rr.mean()) / sxx) if sxx > 0 else 0.0
-    res = rr - rr.mean() - slope * x
-    se = float(np.sqrt(res @ res / max(n - 2, 1) / sxx) * np.sqrt(n / neff)) if sxx > 0 else np.inf
-    out["trend"] = {"slope_per_h": slope, "z": float(slope / se) if se > 0 else 0.0}
+    if whitener is not None and sigma is not None:
+        bias, trend, out["n_effective"] = _level_and_trend_gls(t, r, np.asarray(sigma), m, whitener)
+        out["bias"], out["trend"] = bias, trend
+    else:
+        out["bias"] = {
+            "mean": float(rr.mean()),
+            "z": float(rr.mean() / (sd / np.sqrt(neff)) if sd > 0 else 0.0),
+        }
+        x = (tt - tt.mean()) / 3600.0
+        sxx = float(x @ x)
+        slope = float(x @ (rr - rr.mean()) / sxx) if sxx > 0 else 0.0
+        res = rr - rr.mean() - slope * x
+        se = (
+            float(np.sqrt(res @ res / max(n - 2, 1) / sxx) * np.sqrt(n / neff))
+            if sxx > 0
+            else np.inf
+        )
+        out["trend"] = {"slope_per_h": slope, "z": float(slope / se) if se > 0 else 0.0}
     if sigma is not None:
         s = np.asarray(sigma, dtype=float)[m]
         out["normalized_mse"] = float(np.mean((rr / s) ** 2))
@@ -219,6 +236,82 @@ def residual_diagnostics(
                 row[key] = float(r[sel].mean()) if sel.any() else None
             tails.append(row)
     out["pulse_tails"] = tails
+    return out
+
+
+def _level_and_trend_gls(
+    t: np.ndarray,
+    r: np.ndarray,
+    sigma: np.ndarray,
+    m: np.ndarray,
+    whitener: Callable[[np.ndarray], np.ndarray],
+) -> tuple[dict[str, float], dict[str, float], float]:
+    """Level b0 (% w/w) and trend b1 (% w/w per h) of a residual by generalised least squares
+    under the noise: the innovations of r / sigma regressed on those of 1 / sigma and
+    (t - mean t) / sigma, noise variance 1 (the noise's own), z = b / se. Returns (bias, trend,
+    n_effective), n_effective = |W(1 / sigma)|^2 median(sigma)^2: how many independent samples
+    the coloured noise leaves for estimating a level."""
+    tc = (t - float(np.mean(t[m]))) / 3600.0
+    e = whitener(np.where(m, r / sigma, 0.0))[m]
+    X = np.column_stack(
+        [whitener(np.where(m, 1.0 / sigma, 0.0))[m], whitener(np.where(m, tc / sigma, 0.0))[m]]
+    )
+    xtx = X.T @ X
+    beta = np.linalg.solve(xtx, X.T @ e)
+    se = np.sqrt(np.diag(np.linalg.inv(xtx)))
+    bias = {"mean": float(beta[0]), "z": float(beta[0] / se[0])}
+    trend = {"slope_per_h": float(beta[1]), "z": float(beta[1] / se[1])}
+    return bias, trend, float(xtx[0, 0] * np.median(sigma[m]) ** 2)
+
+
+def innovation_tests(
+    e: np.ndarray,
+    regressors: np.ndarray | None = None,
+    lags: int = 20,
+    alpha: float = 0.01,
+) -> dict[str, Any]:
+    """Are these innovations i.i.d. N(0, 1), as the noise model says? Four tests:
+
+    - ``scale``: sum e^2 ~ chi2(n): the normalised MSE inside its sampling band (upper tail:
+      more than the noise; ``mse_band`` is the band's upper end, mean e^2 at 1 - alpha / 4);
+    - ``level_trend``: the explained sum of squares of e regressed on ``regressors`` (n x k,
+      the innovations of a level and a trend) ~ chi2(k), with each coefficient's z;
+    - ``ljung_box``: Q = n (n + 2) sum_{k<=lags} r_k^2 / (n - k) ~ chi2(lags) (Ljung & Box
+      1978): structure left at short lags;
+    - ``cumulative_periodogram``: the normalised cumulative periodogram against the uniform
+      line, Kolmogorov-Smirnov (Bartlett 1955; Durbin 1969): a peak or a slope of the spectrum.
+
+    ``consistent``: every p-value >= alpha / 4 (Bonferroni); ``failed``: the tests that reject.
+    """
+    e = np.asarray(e, dtype=float)
+    n = e.size
+    if n < 2 * lags + 4:
+        raise ValueError(f"innovations must hold >= {2 * lags + 4} samples, got {n}")
+    level = alpha / 4.0
+    out: dict[str, Any] = {"n": int(n), "alpha": alpha, "mse": float(e @ e / n)}
+    out["mse_band"] = float(stats.chi2.ppf(1.0 - level, n) / n)
+    p = {"scale": float(stats.chi2.sf(e @ e, n))}
+    if regressors is not None:
+        X = np.asarray(regressors, dtype=float)
+        beta, *_ = np.linalg.lstsq(X, e, rcond=None)
+        fitted = X @ beta
+        se = np.sqrt(np.diag(np.linalg.pinv(X.T @ X)))
+        p["level_trend"] = float(stats.chi2.sf(fitted @ fitted, X.shape[1]))
+        out["level_trend_z"] = [float(b / s) if s > 0 else 0.0 for b, s in zip(beta, se)]
+    acf = _acf(e, lags)
+    k = np.arange(1, lags + 1)
+    q = float(n * (n + 2) * np.sum(acf[1:] ** 2 / (n - k)))
+    p["ljung_box"] = float(stats.chi2.sf(q, lags))
+    out["ljung_box_q"] = q
+    per = np.abs(np.fft.rfft(e - e.mean())[1 : (n - 1) // 2 + 1]) ** 2
+    cum = np.cumsum(per)[:-1] / per.sum()
+    ks = stats.kstest(cum, "uniform")
+    p["cumulative_periodogram"] = float(ks.pvalue)
+    out["cumulative_periodogram_d"] = float(ks.statistic)
+    out["p"] = p
+    out["p_min"] = float(min(p.values()))
+    out["failed"] = sorted(name for name, v in p.items() if v < level)
+    out["consistent"] = not out["failed"]
     return out
 
 

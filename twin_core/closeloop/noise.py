@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy import fft as sp_fft
 from scipy.optimize import nnls
 from scipy.signal import periodogram
 
@@ -136,3 +137,122 @@ def with_estimated_noise(data: RunData, model: LineModel) -> tuple[LineModel, No
     cfg = model.config
     sensor = cfg.sensor.model_copy(update={"noise": est.noise})
     return LineModel(cfg.model_copy(update={"sensor": sensor}), list(model.effects)), est
+
+
+# ---------------------------------------------------------------------------------------------
+# innovations: the residual whitened under the (declared or estimated) coloured noise
+# ---------------------------------------------------------------------------------------------
+#: longest linear predictor of the whitening (samples): the 1/f part correlates far back; with
+#: 512 the trend and whiteness tests of pure seed noise hold their level on 2-hour records
+WHITEN_ORDER = 512
+
+
+def pink_autocorrelation(n_record: int, n_lags: int) -> np.ndarray:
+    """Autocorrelation c(k), k = 0..n_lags, of the 1/f process of
+    ``twin_core.rtd.noise.pink_noise`` over a record of ``n_record`` samples.
+
+    The generator draws complex Fourier coefficients of power proportional to 1/f_j on the
+    bins j = 1..n/2 (none at f = 0), so the process is periodic over the record with
+    autocovariance g(k) = sum_j P_j cos(2 pi j k / n), P_j ~ 1/f_j (Wiener-Khinchin; Timmer &
+    Koenig 1995); c = g / g(0).
+    """
+    n = int(n_record)
+    if n < 2:
+        raise ValueError(f"n_record must be >= 2, got {n_record!r}")
+    f = np.fft.rfftfreq(n)
+    power = np.zeros_like(f)
+    power[1:] = 2.0 / f[1:]
+    g = np.fft.irfft(power, n)
+    lags = np.arange(int(n_lags) + 1) % n
+    return g[lags] / g[0]
+
+
+def levinson_durbin(r: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """Linear predictors of every order from an autocovariance r[0..order] (Levinson 1947,
+    Durbin 1960): x_t = sum_{k=1..m} phi[m, k-1] x_{t-k} + e_t with E e_t^2 = v[m].
+
+    Returns (phi, v): phi is (order + 1, order), row m holding the order-m coefficients;
+    v the prediction-error variances of orders 0..order.
+    """
+    r = np.asarray(r, dtype=float)
+    p = int(order)
+    if r.size < p + 1 or r[0] <= 0:
+        raise ValueError(f"r must hold >= order + 1 = {p + 1} values with r[0] > 0")
+    phi = np.zeros((p + 1, max(p, 1)))
+    v = np.empty(p + 1)
+    v[0] = r[0]
+    cur = np.zeros(0)
+    for m in range(1, p + 1):
+        k = (r[m] - cur @ r[m - 1 : 0 : -1]) / v[m - 1]
+        cur = np.concatenate([cur - k * cur[::-1], [k]])
+        v[m] = v[m - 1] * (1.0 - k * k)
+        phi[m, :m] = cur
+    return phi, v
+
+
+class NoiseWhitener:
+    """Innovations of a residual under the NIR noise (white + proportional + 1/f).
+
+    With sigma(t) the noise standard deviation (``twin_core.plant.nir.noise_sd``), z = r / sigma
+    has unit variance and, at lags k >= 1, the correlation rho(k) = pink_sd^2 c(k) / s^2 of its
+    1/f part (:func:`pink_autocorrelation`; s^2 the median of sigma^2: the proportional part
+    makes the level vary a little, which the correlation ignores). The innovations
+
+        e_t = (z_t - sum_{k=1..m} phi_{m,k} z_{t-k}) / sqrt(v_m),  m = min(t, order)
+
+    (the Levinson-Durbin predictors of that correlation, :func:`levinson_durbin`) are, under the
+    noise, independent N(0, 1): the Cholesky factor of the Toeplitz covariance for the first
+    ``order`` samples, a causal FIR filter after. Causal, so an innovation depends on the past
+    only: the held-out innovations of a model fitted on the earlier training window are
+    independent of the fit, which makes the held-out tests exact (and the fit generalised least
+    squares). Without 1/f noise the innovations are z.
+    """
+
+    def __init__(
+        self,
+        sigma: np.ndarray,
+        noise: NIRNoise,
+        n_record: int | None = None,
+        order: int = WHITEN_ORDER,
+    ) -> None:
+        s = np.asarray(sigma, dtype=float)
+        n = s.size
+        self.n = n
+        s2 = float(np.median(s**2))
+        share = noise.pink_sd**2 / s2 if s2 > 0 else 0.0
+        self.order = int(min(order, n - 1)) if share > 0 else 0
+        if self.order == 0:
+            self._fir = None
+            return
+        rho = share * pink_autocorrelation(n_record or n, self.order)
+        rho[0] = 1.0
+        phi, v = levinson_durbin(rho, self.order)
+        p = self.order
+        b = np.concatenate([[1.0], -phi[p, :p]]) / np.sqrt(v[p])
+        head = np.zeros((p, p))
+        for t in range(p):
+            head[t, t] = 1.0
+            if t:
+                head[t, :t] = -phi[t, :t][::-1]
+            head[t] /= np.sqrt(v[t])
+        self._head = head
+        self._nfft = sp_fft.next_fast_len(n + p, real=True)
+        self._fir = sp_fft.rfft(b, self._nfft)
+
+    def __call__(self, z: np.ndarray, exact_head: bool = True) -> np.ndarray:
+        """Innovations of ``z`` (length ``n``; fill samples left out with 0 first).
+
+        ``exact_head=False`` filters the first ``order`` samples with the full-order predictor
+        too, as if the record were preceded by zeros (no p x p product: the fits' objective;
+        their variance is then up to 1 / v_order, a few per cent, too high).
+        """
+        z = np.asarray(z, dtype=float)
+        if z.shape != (self.n,):
+            raise ValueError(f"z must have shape ({self.n},), got {z.shape}")
+        if self._fir is None:
+            return z.copy()
+        e = sp_fft.irfft(sp_fft.rfft(z, self._nfft) * self._fir, self._nfft)[: self.n]
+        if exact_head:
+            p = self.order
+            e[:p] = self._head @ z[:p]
+        return e
