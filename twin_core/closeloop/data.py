@@ -20,14 +20,43 @@ from twin_core.plant.model import LineInputs
 
 
 @dataclass
+class StreamStamps:
+    """The raw time stamps of one stream's messages in arrival order (``t_s``, s) and their
+    per-publisher sequence numbers (``seq``, or None): what the data-quality check reads time
+    jumps, duplicate stamps and dropouts from (``twin_core.closeloop.quality``)."""
+
+    t_s: np.ndarray
+    seq: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.t_s = np.asarray(self.t_s, dtype=float)
+        if self.seq is not None:
+            self.seq = np.asarray(self.seq, dtype=np.int64)
+            if self.seq.shape != self.t_s.shape:
+                raise ValueError(
+                    f"seq must have the shape of t_s {self.t_s.shape}, got {self.seq.shape}"
+                )
+
+    def between(self, t0: float, t1: float) -> StreamStamps:
+        """The stamps with t0 <= t <= t1."""
+        m = (self.t_s >= t0) & (self.t_s <= t1)
+        return StreamStamps(self.t_s[m], None if self.seq is None else self.seq[m])
+
+
+@dataclass
 class RunData:
-    """Arrays of one recording (see module docstring). NaN in ``measured`` = no sample."""
+    """Arrays of one recording (see module docstring). NaN in ``measured`` = no sample.
+
+    ``stamps``: the raw message stamps per stream (``nir``, ``<feeder>:flow``) when the record
+    has them (a recording, the live twin), for the data-quality check.
+    """
 
     t_s: np.ndarray
     measured: np.ndarray
     inputs: LineInputs
     events: list[dict[str, Any]] = field(default_factory=list)
     name: str = "run"
+    stamps: dict[str, StreamStamps] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.t_s = np.asarray(self.t_s, dtype=float)
@@ -67,7 +96,9 @@ class RunData:
             screw_speed_rpm={k: v[m] for k, v in inp.screw_speed_rpm.items()},
         )
         ev = [e for e in self.events if t0 <= float(e["t_s"]) < t1]
-        return RunData(self.t_s[m], self.measured[m], sub, ev, self.name)
+        t_last = float(self.t_s[m][-1])
+        stamps = {k: v.between(t0, t_last) for k, v in self.stamps.items()}
+        return RunData(self.t_s[m], self.measured[m], sub, ev, self.name, stamps)
 
 
 @dataclass

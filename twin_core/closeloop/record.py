@@ -14,6 +14,9 @@ bus and no file format.
 - NIR readings of the sensor's component (not of ``bad`` quality) are kept at their tick; a
   missing reading is NaN (left out of the fit).
 - Tracer pulses come from the ``tracer_pulse`` events (``twin_core.online.inlet.tracer_pulse``).
+- The raw stamps (and sequence numbers) of every stream's messages are kept in arrival order
+  for the data-quality check (``twin_core.closeloop.quality``: time jumps, duplicate stamps,
+  dropouts), which the tick grid would hide.
 - Refill state comes from the feeders' ``refilling`` flags only: ``refill_start`` /
   ``refill_stop`` events on the bus are not read; the events of a window carry refill events at
   the flags' edges instead.
@@ -28,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from schemas.line import TracerPulse
-from twin_core.closeloop.data import RunData
+from twin_core.closeloop.data import RunData, StreamStamps
+from twin_core.closeloop.quality import NIR as NIR_STREAM
 from twin_core.online.inlet import FeederSample, InletAligner, event_record, tracer_pulse
 from twin_core.plant.model import LineInputs
 
@@ -69,6 +73,8 @@ class LineRecord:
         self._meas: dict[int, float] = {}
         self._tracers: dict[tuple[float, str], TracerPulse] = {}
         self._events: list[dict[str, Any]] = []
+        #: raw (t, seq) of each stream's messages in arrival order (``nir``, ``<feeder>:flow``)
+        self._stamps: dict[str, list[tuple[float, int]]] = {}
         #: first tick of the record (the first feeder sample)
         self.first_tick: int | None = None
 
@@ -84,23 +90,27 @@ class LineRecord:
         flow_kg_h: float,
         refilling: bool = False,
         screw_speed_rpm: float = math.nan,
+        seq: int = -1,
     ) -> None:
-        """A reported feeder flow (kg/h) at plant time t, with its refill flag and screw speed."""
+        """A reported feeder flow (kg/h) at plant time t, with its refill flag and screw speed
+        (``seq``: the message's sequence number, -1 unknown)."""
         if feeder not in self.components:
             raise ValueError(f"feeder must be one of {sorted(self.components)}, got {feeder!r}")
         if not np.isfinite(flow_kg_h) or flow_kg_h < 0:
             raise ValueError(f"flow_kg_h must be finite and >= 0, got {flow_kg_h!r}")
         if self.first_tick is None:
             self.first_tick = self.tick(t)
+        self._stamps.setdefault(f"{feeder}:flow", []).append((float(t), int(seq)))
         sample = FeederSample(float(flow_kg_h), bool(refilling), float(screw_speed_rpm))
         for tt, row in self._aligner.push(feeder, t, sample):
             self._ticks[self.tick(tt)] = row
 
-    def add_measured(self, t: float, c_pct_w_w: float) -> None:
-        """A reading of the NIR probe (% w/w) at plant time t."""
+    def add_measured(self, t: float, c_pct_w_w: float, seq: int = -1) -> None:
+        """A reading of the NIR probe (% w/w) at plant time t (``seq``: its sequence number)."""
         if not np.isfinite(c_pct_w_w):
             raise ValueError(f"c_pct_w_w must be finite, got {c_pct_w_w!r}")
         self._meas[self.tick(t)] = float(c_pct_w_w)
+        self._stamps.setdefault(NIR_STREAM, []).append((float(t), int(seq)))
 
     def add_event(self, event: Mapping[str, Any]) -> None:
         """A plant event as a dict (``kind``, ``t_s``, ``source``, ...; see
@@ -127,12 +137,14 @@ class LineRecord:
             feeder = keys.parse_key(key).id
             if feeder not in self.components:
                 return "unknown_feeder"
-            self.add_flow(feeder, msg.t, msg.mass_flow_kg_h, msg.refilling, msg.screw_speed_rpm)
+            self.add_flow(
+                feeder, msg.t, msg.mass_flow_kg_h, msg.refilling, msg.screw_speed_rpm, msg.seq
+            )
             return "flow"
         if isinstance(msg, MeasuredConcentration):
             if msg.quality == "bad" or msg.component != self.sensor_component:
                 return "ignored"
-            self.add_measured(msg.t, msg.concentration_pct_w_w)
+            self.add_measured(msg.t, msg.concentration_pct_w_w, msg.seq)
             return "measured"
         if isinstance(msg, Event):
             self.add_event(event_record(msg))
@@ -198,6 +210,19 @@ class LineRecord:
         events.sort(key=lambda e: float(e["t_s"]))
         return t, y, inputs, events
 
+    def stamps(self, t_start: float, t_end: float) -> dict[str, StreamStamps]:
+        """The raw message stamps of each stream within [t_start, t_end], in arrival order
+        (sequence numbers None when a stream's messages came without them)."""
+        out = {}
+        for name, rows in self._stamps.items():
+            sel = [(t, q) for t, q in rows if t_start <= t <= t_end]
+            if not sel:
+                continue
+            t = np.array([r[0] for r in sel])
+            q = np.array([r[1] for r in sel])
+            out[name] = StreamStamps(t, None if np.any(q < 0) else q)
+        return out
+
     def span(self) -> tuple[float, float]:
         """Plant times of the first and last tick holding both feeder flows and a reading."""
         if not self._ticks or not self._meas:
@@ -212,8 +237,9 @@ class LineRecord:
 
     def run_data(self, name: str = "record") -> RunData:
         """The whole record as a :class:`~twin_core.closeloop.data.RunData` (on :meth:`span`)."""
-        t, y, inputs, events = self.arrays(*self.span())
-        return RunData(t, y, inputs, events, name=name)
+        a, b = self.span()
+        t, y, inputs, events = self.arrays(a, b)
+        return RunData(t, y, inputs, events, name=name, stamps=self.stamps(a, b))
 
     def prune(self, keep_from: int) -> None:
         """Forget the ticks before ``keep_from`` (and the events before them, less the reach of
@@ -224,6 +250,9 @@ class LineRecord:
             del self._meas[k]
         lo = keep_from * self.dt_s - TRACER_REACH_S
         self._events = [e for e in self._events if float(e["t_s"]) >= lo]
+        t_keep = (keep_from - 0.5) * self.dt_s
+        for name, rows in self._stamps.items():
+            self._stamps[name] = [r for r in rows if r[0] >= t_keep]
 
 
 def refill_events(t: np.ndarray, refilling: Mapping[str, np.ndarray]) -> list[dict[str, Any]]:
