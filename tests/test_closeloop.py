@@ -18,7 +18,6 @@ from schemas.line import NIRNoise
 from twin_core.closeloop import (
     EFFECTS,
     IdentifyOptions,
-    NoiseCovariance,
     RunData,
     close_loop,
     dm_test,
@@ -27,9 +26,11 @@ from twin_core.closeloop import (
     online_finding,
     residual_diagnostics,
 )
+from twin_core.closeloop.noise import NoiseWhitener
 from twin_core.closeloop.scenarios import EFFECT_MAGNITUDES, effect_spec, standard_scenario
 from twin_core.online.inlet import event_record
 from twin_core.plant import LineModel, add_nir_noise, simulate_line
+from twin_core.plant.nir import noise_sd
 from twin_core.rtd.outliers import hampel
 
 DURATION = 1500.0
@@ -54,36 +55,53 @@ def _run(effects=(), seed=0, noise_scale=1.0):
 # ---------------------------------------------------------------------------------------
 # statistics
 # ---------------------------------------------------------------------------------------
-def test_noise_covariance_matches_monte_carlo():
-    """delta' C delta of the declared noise equals the Monte-Carlo variance of delta'noise
-    for the simulator's noise (white + pink + proportional; outliers off)."""
+def _innovations_of_noise(pred, noise, rng, whiten):
+    sigma = noise_sd(pred, noise)
+    return whiten((add_nir_noise(pred, noise, rng)[0] - pred) / sigma)
+
+
+def test_whitener_turns_the_seed_noise_into_independent_unit_innovations():
+    """Innovations of the simulator's noise (white + pink + proportional; outliers off) under
+    the declared noise are N(0, 1) and independent: a projection on any fixed direction -- here
+    a slow drift, where the 1/f part concentrates -- has variance 1 (Monte Carlo, 600 records:
+    the sample variance of 600 N(0, 1) lies in 1 +- 0.2 with probability > 0.999), and the
+    lag-1 autocorrelation of the innovations is that of white noise (|r1| < 4 / sqrt(n),
+    false-failure probability < 1e-4 per record, 20 records)."""
     rng = np.random.default_rng(1)
     n = 1200
     pred = 10.0 + 5.0 * np.exp(-(((np.arange(n) - 600) / 40.0) ** 2))
     noise = NIRNoise(outlier_prob=0.0, baseline_offset=0.0)
-    cov = NoiseCovariance(pred, noise)
+    whiten = NoiseWhitener(noise_sd(pred, noise), noise)
     delta = np.zeros(n)
-    delta[700:1100] = np.linspace(0, 1, 400)  # a drift-like direction (pink-sensitive)
-    vals = [delta @ (add_nir_noise(pred, noise, rng)[0] - pred) for _ in range(800)]
-    assert np.var(vals) == pytest.approx(cov.quad(delta), rel=0.15)
+    delta[700:1100] = np.linspace(0, 1, 400)
+    d = whiten(delta / noise_sd(pred, noise))
+    u = d / np.linalg.norm(d)
+    vals = [u @ _innovations_of_noise(pred, noise, rng, whiten) for _ in range(600)]
+    assert np.var(vals) == pytest.approx(1.0, abs=0.2)
+    for _ in range(20):
+        e = _innovations_of_noise(pred, noise, rng, whiten)
+        r1 = float(np.corrcoef(e[:-1], e[1:])[0, 1])
+        assert abs(r1) < 4.0 / np.sqrt(n)
 
 
 def test_heldout_lr_test_is_calibrated_under_the_null():
-    """Under H0 the held-out LR p-value is uniform: ~5 % rejections at alpha = 0.05
-    (binomial 99 % band for 400 trials: 2.2 % .. 8.3 %)."""
+    """Under H0 (the held-out residual is the seed's coloured noise) the held-out LR p-value is
+    uniform: ~5 % rejections at alpha = 0.05 (binomial 99 % band for 400 trials: 2.2 % ..
+    8.3 %); the direction is a slow level-and-wave change, the one 1/f noise fools."""
     rng = np.random.default_rng(2)
     n = 900
     pred = np.full(n, 10.0)
     noise = NIRNoise(outlier_prob=0.0, baseline_offset=0.0)
-    cov = NoiseCovariance(pred, noise)
+    sigma = noise_sd(pred, noise)
+    whiten = NoiseWhitener(sigma, noise)
     delta = np.zeros(n)
     delta[500:] = 0.05 + 0.1 * np.sin(np.arange(400) / 30.0)
-    p = np.array(
-        [
-            heldout_lr_test(add_nir_noise(pred, noise, rng)[0] - pred, delta, cov)[1]
-            for _ in range(400)
-        ]
-    )
+    d = whiten(delta / sigma)[500:]
+    p = []
+    for _ in range(400):
+        e0 = _innovations_of_noise(pred, noise, rng, whiten)[500:]
+        p.append(heldout_lr_test(e0, e0 - d)[1])
+    p = np.array(p)
     assert 0.022 <= np.mean(p < 0.05) <= 0.083
     assert stats.kstest(p, "uniform").pvalue > 0.001
 
@@ -182,7 +200,10 @@ def test_diagnostics_trace_a_residual_to_screw_speed_steps():
 # ---------------------------------------------------------------------------------------
 def test_every_effect_is_found_and_heldout_error_drops():
     """Each candidate effect hidden in a run (magnitudes of the scenario, alternating level
-    and seed) is the effect claimed in >= 90 % of the runs, and the held-out RMSE drops."""
+    and seed) is the effect claimed, or one of the equivalent explanations listed with the
+    claim (a probe gain and API lost in the blender read alike), in >= 90 % of the runs; no
+    run claims a wrong effect without the truth among its equivalents, and the held-out RMSE
+    drops."""
     names = sorted(EFFECT_MAGNITUDES)
     assert set(names) == set(EFFECTS)
     right = 0
@@ -190,8 +211,12 @@ def test_every_effect_is_found_and_heldout_error_drops():
         level = i % 2
         cfg, run = _run([effect_spec(name, level)], seed=100 + i)
         res = close_loop(RunData.from_line_run(run), LineModel(cfg))
-        found = [lab.split("[")[0] for lab in res.effects_found]
-        right += found[:1] == [name]
+        if not res.effects_found:
+            continue
+        first = res.to_dict()["effects"][0]
+        readings = [first["label"], *first["alternatives"]]
+        assert name in [lab.split("[")[0] for lab in readings], (name, readings)
+        right += 1
         e = res.errors()
         assert e["after"]["heldout"]["rmse"] < e["before"]["heldout"]["rmse"], name
     assert right >= 0.9 * len(names)
@@ -211,16 +236,23 @@ def test_no_effect_is_not_claimed():
 
 
 def test_two_effects_are_both_found_with_parameters():
-    """Dead zone + sensor offset together: both claimed, parameters within 4 standard errors
-    of the truth (or 15 %), held-out RMSE back to the noise level."""
+    """Dead zone + sensor offset together: both claimed (the offset or an equivalent listed with
+    it), parameters within 4 standard errors of the truth (or 15 %), held-out RMSE back to the
+    noise level."""
     truth = [effect_spec("dead_zone", 1), effect_spec("sensor_offset", 0)]
     cfg, run = _run(truth, seed=0)
     res = close_loop(RunData.from_line_run(run), LineModel(cfg))
     rep = CloseLoopReport.model_validate(res.to_dict())
     assert rep.status == "explained"
     got = {e.name: e for e in rep.effects}
-    assert set(got) == {"dead_zone", "sensor_offset"}
+    readings = {e.name: {e.name, *(q.name for q in e.equivalents)} for e in rep.effects}
+    assert len(got) == 2 and "dead_zone" in got
+    # at 10 % API an offset of 0.25 reads almost as a gain of 1.025: either, with the other
+    # listed as its equivalent
+    assert any("sensor_offset" in r for r in readings.values()), readings
     for spec in truth:
+        if spec["name"] not in got:
+            continue
         for p in got[spec["name"]].params:
             true = spec["params"][p.name]
             assert abs(p.value - true) <= max(4 * (p.stderr or 0), 0.15 * abs(true)), (p, true)

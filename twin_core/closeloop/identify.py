@@ -1,72 +1,95 @@
-"""Identification of undeclared effects: fit candidates, select, and test on held-out data.
+"""Identification of undeclared effects: fit candidates, select, test on held-out data, and say
+honestly how much is explained.
 
 Procedure (forward stepwise, at most ``max_effects`` effects):
 
 1. The measured series is cleaned of isolated outliers (Hampel filter, the seed's "outlier
-   removal before denoising"); residuals are weighted by the declared noise standard deviation
-   sigma(t) (white, pink and proportional parts of the sensor's ``NIRNoise``).
-2. For every candidate (effect class x target feeder for feeder effects; a candidate whose
-   excitation is absent from the training window, e.g. a refill surge without a refill, is
-   skipped), the parameters of the already accepted effects and of the candidate are fitted
-   jointly by bounded weighted least squares (``scipy.optimize.least_squares``, trust-region
-   reflective, several starts) on the training window.
-3. Scores: training BIC = n ln(SSE/n) + k ln n (Schwarz 1978); held-out weighted MSE; and a
-   held-out likelihood-ratio test under the declared noise. With e0 the held-out residual of
-   the current model and delta = p1 - p0 the change of prediction the candidate (fitted on
-   the training window only) makes there, the held-out SSE improvement is
-   2 delta'e0 - delta'delta; under H0 (no effect, e0 ~ N(0, C) with C the declared noise
-   covariance: diagonal white + proportional variance, plus the 1/f pink covariance computed
-   in the Fourier domain) it is normal with mean -delta'delta and variance 4 delta'C delta, so
-   its one-sided p-value is 1 - Phi(T), T = delta'e0 / sqrt(delta'C delta) (the signed root
-   of the Gaussian likelihood ratio for e0 = beta delta + noise). The Diebold-Mariano
+   removal before denoising"); samples the data-quality check flagged
+   (``twin_core.closeloop.quality``), missing samples and the start-up ``skip_s`` are left out.
+   The residual r = y - prediction is divided by the noise standard deviation sigma(t) (white,
+   pink and proportional parts of the sensor's ``NIRNoise``) and turned into **innovations**
+   (``twin_core.closeloop.noise.NoiseWhitener``): under the declared coloured noise they are
+   independent N(0, 1), each depending on the past only. Every sum of squares below is one of
+   innovations, so fits are generalised least squares and the tests allow for the 1/f noise
+   (the effective sample size of a slow pattern is what the noise leaves of it, not n).
+2. For every candidate (effect class x target feeder for feeder effects, the measured
+   component for unit effects; a candidate whose excitation is absent from the training window,
+   e.g. a refill surge without a refill, is skipped), the parameters of the already accepted
+   effects and of the candidate are fitted jointly by bounded least squares on the training
+   innovations (``scipy.optimize.least_squares``, trust-region reflective; the starts are
+   screened by cost and the best one or two refined).
+3. Scores: training BIC = n ln(SSE/n) + k ln n (Schwarz 1978); held-out innovation MSE; and a
+   held-out likelihood-ratio test. With e0 and e1 the held-out innovations of the current model
+   and of the candidate (fitted on the training window only) and d = e0 - e1 (the innovations
+   of the candidate's change of prediction), under H0 (no further effect) e0 is i.i.d. N(0, 1)
+   and independent of d (causal whitening: d depends on the training data and the deterministic
+   inputs), so T = d'e0 / |d| ~ N(0, 1) exactly; its one-sided p-value is 1 - Phi(T), the
+   signed root of the Gaussian likelihood ratio for e0 = beta d + noise. The Diebold-Mariano
    statistic (Diebold & Mariano 1995; Harvey, Leybourne & Newbold 1997 correction; Newey-West
-   long-run variance with ``hac_lag_s`` of lags) of d_t = e0_t^2 - e1_t^2 is reported too.
-4. A candidate is *claimed* only if its BIC beats the current model, its held-out weighted
+   long-run variance with ``hac_lag_s`` of lags) of e0^2 - e1^2 is reported too.
+4. A candidate is *claimed* only if its BIC beats the current model, its held-out innovation
    MSE drops by at least ``min_improvement`` (relative), and the held-out LR p-value is below
    ``alpha`` / (number of candidates tried at that step) (Bonferroni). ``min_improvement`` is
-   the margin that noise alone does not produce: calibrated by simulation of runs without
-   effects (``benchmarks/closeloop_confusion.py``, docs/closeloop.md). Among the claimable
+   the margin that noise alone does not produce (calibrated by simulation of runs without
+   effects: ``benchmarks/closeloop_confusion.py``, docs/closeloop.md). Among the claimable
    candidates the one with the lowest BIC over the whole record (training and held-out
-   residuals, parameters from the training fit; ``select="bic_all"``) is accepted (or the
-   lowest held-out error, ``select="heldout"``), and the search repeats with the augmented
-   model. Claimable candidates whose whole-record BIC is within ``ambiguity_bic`` (10: "very
-   strong" evidence, Kass & Raftery 1995) of the accepted one are reported as
-   indistinguishable alternatives (e.g. a sensor drift and a feed-factor drift of the API
-   feeder when the API flow hardly changes). With two effects accepted, a replacement step
-   (sequential floating selection) tries swapping either of them for every other candidate
-   and keeps a pair that lowers the whole-record BIC and the held-out error while both of its
-   effects pass the claim test (greedy forward steps can pick an effect that mimics the sum
-   of two others first).
-5. When nothing is claimed but the residual is not explained by the declared noise (the mean
-   of (r / sigma)^2 above ``unexplained_nmse`` on the training or the held-out window) the
-   status is ``"unexplained"`` and the report shows the residual; otherwise
-   ``"consistent"``.
+   innovations, parameters from the training fit; ``select="bic_all"``) is accepted (or the
+   lowest held-out error, ``select="heldout"``; after the first step the ``joint_top`` best
+   claimable candidates are first refitted with every parameter free), and the search repeats
+   with the augmented model. With two effects accepted, a replacement step (sequential floating selection) tries
+   swapping either of them for every other candidate and keeps a pair that lowers the
+   whole-record BIC and the held-out error while both of its effects pass the claim test.
+5. **Equivalent explanations**: every candidate of the accepting step whose whole-record BIC is
+   within ``ambiguity_bic`` (10: "very strong" evidence, Kass & Raftery 1995) of the accepted
+   one and that lowers the held-out error by the margin too is an explanation the data cannot
+   tell apart from it (e.g. a probe gain and API lost in the blender); they are listed with
+   their scores, across stages (probe and product side).
+6. **Status** (the honest one): with an effect claimed, ``explained`` only if the held-out
+   innovations of the augmented model are consistent with the noise
+   (``twin_core.closeloop.diagnostics.innovation_tests``: scale inside its chi-square band,
+   no level or trend, Ljung-Box and cumulative-periodogram whiteness, Bonferroni at
+   ``noise_alpha``), else ``partly_explained``; without a claim ``consistent`` when the
+   declared model's innovations (training and held-out) pass the same tests, else
+   ``unexplained``.
 
 Parameter uncertainties: standard errors from the Gauss-Newton covariance s^2 (J^T J)^-1 of the
-weighted fit, inflated by sqrt((1 + rho1) / (1 - rho1)) for the lag-1 autocorrelation of the
-weighted residual (AR(1) variance inflation), with 95 % intervals +-1.96 SE clipped to bounds.
+fit on innovations (independent under the noise, so no correlation inflation), 95 % intervals
++-1.96 SE clipped to bounds.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import optimize, stats
 
 from twin_core.closeloop.data import RunData, Split, make_split
+from twin_core.closeloop.diagnostics import innovation_tests
+from twin_core.closeloop.noise import NoiseWhitener
 from twin_core.plant.effects import EFFECTS, Effect
-from twin_core.plant.model import LineModel, outlet_concentration, sensor_signal
+from twin_core.plant.model import LineModel, OutletModel, sensor_signal
 from twin_core.plant.nir import noise_sd
 from twin_core.rtd.outliers import hampel
+
+#: the five statuses of a close-loop report (see the module docstring; ``data_quality`` is set
+#: by ``twin_core.closeloop.report.close_loop`` when flagged data faults are all there is)
+#: relative tolerances of the fits (cost, step, gradient): a cost change of 1e-5 moves a BIC of
+#: 7200 samples by < 0.1
+FIT_TOL = 1e-5
+
+STATUSES = ("consistent", "explained", "partly_explained", "unexplained", "data_quality")
 
 
 @dataclass(frozen=True)
 class Candidate:
-    """A candidate effect: a registered effect class and, for feeder effects, its target."""
+    """A candidate effect: a registered effect class and its target (the feeder of a feeder
+    effect, the component of a unit effect)."""
 
     name: str
     target: str | None = None
@@ -99,42 +122,57 @@ def candidate_list(
                     if rf is None or not np.any(rf & train):
                         continue
                 out.append(Candidate(name, feeder))
+        elif cls.stage == "unit":
+            out.append(Candidate(name, model.config.sensor.component))
         else:
             out.append(Candidate(name))
     return out
 
 
+def effect_side(label: str) -> str:
+    """``"probe"`` or ``"product"`` of a candidate label (``name`` or ``name[target]``)."""
+    return "probe" if EFFECTS[label.split("[")[0]].stage == "sensor" else "product"
+
+
 class _Evaluator:
-    """Predictions of the probe reading for effect sets, reusing the declared outlet when only
-    sensor-stage effects change."""
+    """Predictions of the probe reading and their innovations for effect sets on one record.
+
+    The outlet of the measured component is kept per set of outlet-changing (feeder, rtd, unit)
+    effects, so sensor-stage effects cost no convolution; the convolutions themselves reuse the
+    inflow and kernel spectra (``twin_core.plant.model.OutletModel``).
+    """
 
     def __init__(self, model: LineModel, data: RunData) -> None:
         self.model = model
-        self.data = data
-        self.sensor = model.config.sensor
         self.t = data.t_s
+        self.sensor = model.config.sensor
+        self.om = OutletModel(data.inputs, model.config.blender)
         self._cache: dict[tuple, np.ndarray] = {}
         self.n_eval = 0
+        pred0 = self.predict([])
+        self.sigma = np.maximum(noise_sd(pred0, self.sensor.noise), 1e-6)
+        self.whiten = NoiseWhitener(self.sigma, self.sensor.noise)
+        self.n_eval = 0
+        self.y = np.zeros_like(self.t)
+        self.usable = np.zeros(self.t.size, dtype=bool)
+
+    def set_measured(self, y: np.ndarray, usable: np.ndarray) -> None:
+        """The measured series (outliers replaced) and the samples the fits use."""
+        self.y = np.where(usable, y, 0.0)
+        self.usable = usable
 
     def outlet(self, effects: Sequence[Effect]) -> np.ndarray:
-        """Outlet concentration; cached on the parameters of the rtd/feeder effects (sensor
-        effects do not change it)."""
-        key = tuple(
-            (e.name, e.target, tuple(e.vector())) for e in effects if e.stage in ("rtd", "feeder")
-        )
+        """Outlet concentration of the measured component (% w/w)."""
+        allx = [*self.model.effects, *effects]
+        key = tuple((e.name, e.target, tuple(e.vector())) for e in allx if e.stage != "sensor")
         hit = self._cache.get(key)
         if hit is None:
-            hit = self._outlet([e for e in effects if e.stage in ("rtd", "feeder")])
+            c = self.om.concentrations(allx, [self.sensor.component]).get(self.sensor.component)
+            hit = np.zeros_like(self.t) if c is None else c
             if len(self._cache) > 256:
                 self._cache.clear()
             self._cache[key] = hit
         return hit
-
-    def _outlet(self, effects: Sequence[Effect]) -> np.ndarray:
-        allx = [*self.model.effects, *effects]
-        c = outlet_concentration(self.data.inputs, self.model.config.blender, allx)
-        out = c.get(self.sensor.component)
-        return np.zeros_like(self.t) if out is None else out
 
     def predict(self, effects: Sequence[Effect]) -> np.ndarray:
         self.n_eval += 1
@@ -142,6 +180,12 @@ class _Evaluator:
         return sensor_signal(
             self.t, c, [*self.model.effects, *effects], self.sensor.noise.baseline_offset
         )
+
+    def innovations(self, pred: np.ndarray, exact_head: bool = True) -> np.ndarray:
+        """Innovations of the residual y - pred (samples left out enter as 0); see
+        ``NoiseWhitener`` for ``exact_head`` (off in the fits' objective)."""
+        z = np.where(self.usable, (self.y - pred) / self.sigma, 0.0)
+        return self.whiten(z, exact_head)
 
 
 @dataclass
@@ -156,6 +200,7 @@ class FitResult:
     bic: float
     mse_heldout: float
     pred: np.ndarray
+    innov: np.ndarray
     stderr: list[np.ndarray] = field(default_factory=list)
     dm_stat: float = float("nan")
     dm_p_value: float = float("nan")
@@ -167,8 +212,13 @@ class FitResult:
     bic_all: float = float("nan")
     claimable: bool = False
     converged: bool = True
-    #: other claimable candidates of the same step within ``ambiguity_bic`` of this one
-    alternatives: list[str] = field(default_factory=list)
+    #: fits of the same step the data cannot tell from this one (module docstring, item 5)
+    equivalents: list[FitResult] = field(default_factory=list)
+
+    @property
+    def alternatives(self) -> list[str]:
+        """Labels of the equivalent explanations."""
+        return [f.labels[-1] for f in self.equivalents]
 
 
 def _pack(effects: Sequence[Effect]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -188,7 +238,7 @@ def _unpack(effects: Sequence[Effect], x: np.ndarray) -> list[Effect]:
 
 
 def _bic(sse: float, n: int, k: int) -> float:
-    """Gaussian BIC n ln(SSE / n) + k ln n (Schwarz 1978) of a weighted fit."""
+    """Gaussian BIC n ln(SSE / n) + k ln n (Schwarz 1978) of a fit on innovations."""
     return n * math.log(max(sse, 1e-300) / n) + k * math.log(n)
 
 
@@ -219,40 +269,16 @@ def dm_test(e0: np.ndarray, e1: np.ndarray, hac_lag: int) -> tuple[float, float]
     return float(dm), float(stats.t.sf(dm, n - 1))
 
 
-class NoiseCovariance:
-    """Quadratic form delta' C delta of the declared NIR noise covariance on a record.
+def heldout_lr_test(e0: np.ndarray, e1: np.ndarray) -> tuple[float, float]:
+    """T = d'e0 / |d|, d = e0 - e1, and its one-sided p-value 1 - Phi(T) (module item 3).
 
-    C = diag(white_sd^2 + (proportional_rel * |p|)^2) + pink_sd^2 C_pink, with C_pink the
-    covariance of the unit-variance 1/f process of ``twin_core.rtd.noise.pink_noise`` over the
-    record: delta' C_pink delta = sum_k a_k^2 |D_k|^2 / sum_k a_k^2, D = rfft(delta),
-    a_k^2 = 1/f_k (periodic stationary process; exact for the generator up to its
-    standardisation).
+    ``e0``, ``e1``: held-out innovations of the current model and of the candidate.
     """
-
-    def __init__(self, pred: np.ndarray, noise, alpha: float = 1.0) -> None:
-        n = pred.size
-        self.diag = noise.white_sd**2 + (noise.proportional_rel * np.abs(pred)) ** 2
-        f = np.fft.rfftfreq(n)
-        a2 = np.zeros_like(f)
-        a2[1:] = f[1:] ** (-alpha)
-        self.a2 = a2 / a2.sum()
-        self.pink_var = noise.pink_sd**2
-
-    def quad(self, delta: np.ndarray) -> float:
-        d = np.asarray(delta, dtype=float)
-        D = np.fft.rfft(d)
-        return float(d @ (self.diag * d) + self.pink_var * np.sum(self.a2 * np.abs(D) ** 2))
-
-
-def heldout_lr_test(e0: np.ndarray, delta: np.ndarray, cov: NoiseCovariance) -> tuple[float, float]:
-    """T = delta'e0 / sqrt(delta'C delta) and its one-sided p-value 1 - Phi(T) (see module).
-
-    ``e0`` and ``delta`` are full-length arrays, zero outside the held-out window.
-    """
-    q = cov.quad(delta)
+    d = np.asarray(e0, dtype=float) - np.asarray(e1, dtype=float)
+    q = float(d @ d)
     if q <= 0:
         return 0.0, 1.0
-    z = float(delta @ e0) / math.sqrt(q)
+    z = float(d @ np.asarray(e0, dtype=float)) / math.sqrt(q)
     return z, float(stats.norm.sf(z))
 
 
@@ -269,53 +295,14 @@ class IdentifyOptions:
     train_fraction: float = 0.6
     block_s: float = 120.0
     skip_s: float = 0.0
-    unexplained_nmse: float = 1.3
-    max_nfev: int = 200
+    max_nfev: int = 100
     select: str = "bic_all"
     ambiguity_bic: float = 10.0
     swap: bool = True
-
-
-def _swap_refine(accepted, base, cands, ev, y_f, sigma, train, held, opt, score, claimable):
-    """Replacement step of a two-effect forward search (sequential floating selection,
-    Pudil, Novovicova & Kittler 1994): try replacing either accepted effect by every other
-    candidate (joint refit); keep the best pair if it lowers the whole-record BIC and the
-    held-out error, and if both of its effects still pass the claim test in order."""
-    final = accepted[-1]
-    best = None
-    for i in range(len(final.effects)):
-        keep = [e for j, e in enumerate(final.effects) if j != i]
-        keep_labels = [lab for j, lab in enumerate(final.labels) if j != i]
-        names = {lab.split("[")[0] for lab in final.labels}
-        for cand in cands:
-            if cand.name in names:
-                continue
-            fr = _fit(
-                ev,
-                _start_sets(keep, cand),
-                [*keep_labels, cand.label],
-                y_f,
-                sigma,
-                train,
-                held,
-                opt.max_nfev,
-            )
-            if fr.bic_all < final.bic_all and fr.mse_heldout < final.mse_heldout:
-                if best is None or fr.bic_all < best[0].bic_all:
-                    best = (fr, keep, keep_labels)
-    if best is None:
-        return accepted, final
-    fr, keep, keep_labels = best
-    first = _fit(ev, [keep], keep_labels, y_f, sigma, train, held, opt.max_nfev)
-    score(first, base)
-    score(fr, first)
-    m = max(len(cands), 1)
-    first.claimable = claimable(first, opt.alpha / m)
-    fr.claimable = claimable(fr, opt.alpha / m)
-    if not (first.claimable and fr.claimable):
-        return accepted, final
-    fr.alternatives = [final.labels[-1]] if final.bic_all - fr.bic_all < opt.ambiguity_bic else []
-    return [first, fr], fr
+    #: claimable candidates of a step after the first refitted jointly before the choice
+    joint_top: int = 3
+    #: level of the noise-consistency tests behind ``explained`` / ``consistent``
+    noise_alpha: float = 0.01
 
 
 @dataclass
@@ -332,53 +319,69 @@ class Identification:
     sigma: np.ndarray
     outliers: np.ndarray
     options: IdentifyOptions
+    #: samples the fits and tests use (finite, not flagged, not skipped)
+    usable: np.ndarray
+    #: innovation tests of the model the status rests on (module docstring, item 6)
+    noise_tests: dict[str, Any]
+    whitener: NoiseWhitener
     n_eval: int = 0
+    #: the predictions' evaluator (refits of other readings use it: :func:`refit`)
+    evaluator: Any = None
+    #: CPU seconds of the tests (held-out scores, innovation tests) within the identification
+    tests_s: float = 0.0
+
+    @property
+    def train(self) -> np.ndarray:
+        return self.split.train & self.usable
+
+    @property
+    def heldout(self) -> np.ndarray:
+        return self.split.heldout & self.usable
 
 
 def _fit(
     ev: _Evaluator,
     start_sets: list[list[Effect]],
     labels: list[str],
-    y: np.ndarray,
-    sigma: np.ndarray,
     train: np.ndarray,
     held: np.ndarray,
     max_nfev: int,
-    n_refine: int = 2,
+    n_refine: int = 1,
+    n_fixed: int = 0,
 ) -> FitResult:
+    """Bounded least squares on the training innovations from the best ``n_refine`` starts;
+    the first ``n_fixed`` effects of each start keep their parameters."""
     best = None
     if len(start_sets) > n_refine:
-        # screen the starts by their cost, refine the best ``n_refine`` of them
         costs = []
         for effects in start_sets:
-            r0 = ((y - ev.predict(effects)) / sigma)[train]
+            r0 = ev.innovations(ev.predict(effects), exact_head=False)[train]
             costs.append(float(r0 @ r0))
         order = np.argsort(costs)[:n_refine]
         start_sets = [start_sets[i] for i in order]
     for effects in start_sets:
-        x0, lo, hi = _pack(effects)
+        fixed, free = list(effects[:n_fixed]), list(effects[n_fixed:])
+        x0, lo, hi = _pack(free)
         if x0.size == 0:
-            pred = ev.predict([])
-            r = (y - pred) / sigma
-            best = (float(np.sum(r[train] ** 2)), effects, None)
+            r = ev.innovations(ev.predict(effects), exact_head=False)[train]
+            best = (float(r @ r), list(effects), None)
             break
         x0 = np.clip(x0, lo, hi)
 
-        def resid(x: np.ndarray, effects=effects) -> np.ndarray:
-            p = ev.predict(_unpack(effects, x))
-            return ((y - p) / sigma)[train]
+        def resid(x: np.ndarray, fixed=fixed, free=free) -> np.ndarray:
+            p = ev.predict([*fixed, *_unpack(free, x)])
+            return ev.innovations(p, exact_head=False)[train]
 
-        span = hi - lo
         try:
             sol = optimize.least_squares(
                 resid,
                 x0,
                 bounds=(lo, hi),
-                x_scale=np.maximum(span * 0.05, 1e-6),
+                x_scale=np.maximum((hi - lo) * 0.05, 1e-6),
                 diff_step=1e-4,
-                ftol=1e-6,
-                xtol=1e-6,
-                gtol=1e-6,
+                ftol=FIT_TOL,
+                xtol=FIT_TOL,
+                gtol=FIT_TOL,
                 max_nfev=max_nfev,
                 method="trf",
             )
@@ -386,44 +389,49 @@ def _fit(
             continue
         cost = 2.0 * float(sol.cost)
         if best is None or cost < best[0]:
-            best = (cost, _unpack(effects, sol.x), sol)
+            best = (cost, [*fixed, *_unpack(free, sol.x)], sol)
     if best is None:
         raise RuntimeError(f"no start converged for {labels}")
-    sse, effs, sol = best
+    _, effs, sol = best
     pred = ev.predict(effs)
-    r = (y - pred) / sigma
+    e = ev.innovations(pred)
+    sse = float(e[train] @ e[train])
     n_tr = int(train.sum())
-    k = int(sum(len(e.params) for e in effs))
-    bic = n_tr * math.log(max(sse, 1e-300) / n_tr) + k * math.log(n_tr)
-    stderr: list[np.ndarray] = []
-    if sol is not None and k > 0:
-        J = sol.jac
-        rt = r[train]
-        s2 = sse / max(n_tr - k, 1)
-        rho = float(np.clip(np.corrcoef(rt[1:], rt[:-1])[0, 1], -0.95, 0.95)) if n_tr > 3 else 0.0
-        infl = math.sqrt((1 + rho) / (1 - rho)) if rho > 0 else 1.0
-        try:
-            cov = np.linalg.pinv(J.T @ J) * s2
-            se = np.sqrt(np.clip(np.diag(cov), 0, None)) * infl
-        except np.linalg.LinAlgError:
-            se = np.full(k, np.nan)
-        i = 0
-        for e in effs:
-            stderr.append(se[i : i + len(e.params)])
-            i += len(e.params)
+    k = int(sum(len(x.params) for x in effs))
+    stderr = _stderr(sol, effs[n_fixed:], sse, n_tr, k)
+    if stderr:
+        stderr = [np.full(len(x.params), np.nan) for x in effs[:n_fixed]] + stderr
     return FitResult(
         labels=labels,
         effects=list(effs),
         k=k,
         sse_train=sse,
         n_train=n_tr,
-        bic=bic,
-        mse_heldout=float(np.mean(r[held] ** 2)),
-        bic_all=_bic(float(np.sum(r[train | held] ** 2)), int(np.sum(train | held)), k),
+        bic=_bic(sse, n_tr, k),
+        mse_heldout=float(np.mean(e[held] ** 2)),
+        bic_all=_bic(float(np.sum(e[train | held] ** 2)), int(np.sum(train | held)), k),
         pred=pred,
+        innov=e,
         stderr=stderr,
         converged=bool(sol.success) if sol is not None else True,
     )
+
+
+def _stderr(sol: Any, effects: Sequence[Effect], sse: float, n: int, k: int) -> list[np.ndarray]:
+    """Per-effect standard errors from the Gauss-Newton covariance s^2 (J'J)^-1 of a fit."""
+    if sol is None or k == 0:
+        return []
+    J = sol.jac
+    s2 = sse / max(n - k, 1)
+    try:
+        se = np.sqrt(np.clip(np.diag(np.linalg.pinv(J.T @ J) * s2), 0, None))
+    except np.linalg.LinAlgError:
+        se = np.full(k, np.nan)
+    out, i = [], 0
+    for e in effects:
+        out.append(se[i : i + len(e.params)])
+        i += len(e.params)
+    return out
 
 
 def _start_sets(accepted: list[Effect], cand: Candidate, max_starts: int = 6) -> list[list[Effect]]:
@@ -436,95 +444,218 @@ def _start_sets(accepted: list[Effect], cand: Candidate, max_starts: int = 6) ->
     ]
 
 
-def identify(
-    model: LineModel, data: RunData, options: IdentifyOptions | None = None
-) -> Identification:
-    """Find the undeclared effects in ``data`` relative to ``model`` (see module docstring)."""
-    opt = options or IdentifyOptions()
+class _Search:
+    """The forward search's shared state: evaluator, windows, options and the scoring rules."""
+
+    def __init__(self, ev: _Evaluator, train: np.ndarray, held: np.ndarray, opt: IdentifyOptions):
+        self.ev = ev
+        self.train = train
+        self.held = held
+        self.opt = opt
+        dt = float(ev.t[1] - ev.t[0])
+        self.hac = int(round(opt.hac_lag_s / dt))
+        self.tests_s = 0.0
+
+    def fit(self, start_sets: list[list[Effect]], labels: list[str], n_fixed: int = 0) -> FitResult:
+        """:func:`_fit` on the search's windows: two starts refined for effects of more than
+        one parameter, one otherwise."""
+        n_refine = 2 if start_sets and start_sets[0] and len(start_sets[0][-1].params) > 1 else 1
+        return _fit(
+            self.ev,
+            start_sets,
+            labels,
+            self.train,
+            self.held,
+            self.opt.max_nfev,
+            n_refine,
+            n_fixed,
+        )
+
+    def score(self, fr: FitResult, prev: FitResult) -> None:
+        """Held-out tests and BIC of ``fr`` against the model ``prev`` it extends."""
+        t0 = time.process_time()
+        e0 = prev.innov[self.held]
+        e1 = fr.innov[self.held]
+        fr.dm_stat, fr.dm_p_value = dm_test(e0, e1, self.hac)
+        fr.lr_z, fr.p_value = heldout_lr_test(e0, e1)
+        fr.rel_improvement = 1.0 - fr.mse_heldout / prev.mse_heldout
+        fr.delta_bic = fr.bic - prev.bic
+        self.tests_s += time.process_time() - t0
+
+    def joint(self, fr: FitResult, prev: FitResult, level: float) -> FitResult:
+        """``fr`` (fitted with the earlier effects held) refitted with every parameter free,
+        scored against ``prev``; ``fr`` itself if the joint fit no longer passes the claim."""
+        j = self.fit([list(fr.effects)], list(fr.labels))
+        self.score(j, prev)
+        j.claimable = self.claimable(j, level)
+        return j if j.claimable and j.sse_train <= fr.sse_train else fr
+
+    def claimable(self, fr: FitResult, level: float) -> bool:
+        return bool(
+            fr.delta_bic < 0
+            and fr.rel_improvement >= self.opt.min_improvement
+            and fr.p_value < level
+        )
+
+    def equivalents(self, chosen: FitResult, results: Sequence[FitResult]) -> list[FitResult]:
+        """Fits of a step within ``ambiguity_bic`` of the chosen one that lower the held-out
+        error by the margin too (module docstring, item 5), best first."""
+        out = [
+            f
+            for f in results
+            if f is not chosen
+            and f.bic_all - chosen.bic_all <= self.opt.ambiguity_bic
+            and f.rel_improvement >= self.opt.min_improvement
+        ]
+        return sorted(out, key=lambda f: f.bic_all)
+
+
+def _swap_refine(
+    search: _Search, accepted: list[FitResult], base: FitResult, cands: list[Candidate]
+) -> tuple[list[FitResult], FitResult]:
+    """Replacement step of a two-effect forward search (sequential floating selection,
+    Pudil, Novovicova & Kittler 1994): try replacing either accepted effect by every other
+    candidate (joint refit); keep the best pair if it lowers the whole-record BIC and the
+    held-out error, and if both of its effects still pass the claim test in order."""
+    final = accepted[-1]
+    best = None
+    names = {lab.split("[")[0] for lab in final.labels}
+    for i in range(len(final.effects)):
+        keep = [e for j, e in enumerate(final.effects) if j != i]
+        keep_labels = [lab for j, lab in enumerate(final.labels) if j != i]
+        for cand in cands:
+            if cand.name in names:
+                continue
+            fr = search.fit(_start_sets(keep, cand), [*keep_labels, cand.label], len(keep))
+            if fr.bic_all < final.bic_all and fr.mse_heldout < final.mse_heldout:
+                if best is None or fr.bic_all < best[0].bic_all:
+                    best = (fr, keep, keep_labels)
+    if best is None:
+        return accepted, final
+    fr, keep, keep_labels = best
+    fr = search.fit([list(fr.effects)], list(fr.labels))
+    keep = fr.effects[:-1]
+    first = search.fit([keep], keep_labels)
+    search.score(first, base)
+    search.score(fr, first)
+    level = search.opt.alpha / max(len(cands), 1)
+    first.claimable = search.claimable(first, level)
+    fr.claimable = search.claimable(fr, level)
+    if not (first.claimable and fr.claimable):
+        return accepted, final
+    fr.equivalents = [final] if final.bic_all - fr.bic_all < search.opt.ambiguity_bic else []
+    return [first, fr], fr
+
+
+def _check_options(opt: IdentifyOptions) -> None:
     if opt.max_effects < 0:
         raise ValueError(f"max_effects must be >= 0, got {opt.max_effects}")
     if opt.select not in ("bic_all", "heldout"):
         raise ValueError(f"select must be 'bic_all' or 'heldout', got {opt.select!r}")
     if not 0 < opt.alpha < 1:
         raise ValueError(f"alpha must be in (0, 1), got {opt.alpha}")
-    cleaned = hampel(data.measured, variant="pearson")
-    y, outl = cleaned.y, cleaned.mask
-    finite = np.isfinite(y)
-    split = make_split(data.t_s, opt.split, opt.train_fraction, opt.block_s, opt.skip_s)
-    train = split.train & finite
-    held = split.heldout & finite
-    ev = _Evaluator(model, data)
-    declared_pred = ev.predict([])
-    sigma = noise_sd(declared_pred, model.config.sensor.noise)
-    sigma = np.maximum(sigma, 1e-6)
-    y_f = np.where(finite, y, 0.0)
-    dt = float(data.t_s[1] - data.t_s[0])
-    hac = int(round(opt.hac_lag_s / dt))
-    cov = NoiseCovariance(declared_pred, model.config.sensor.noise)
+    if not 0 < opt.noise_alpha < 1:
+        raise ValueError(f"noise_alpha must be in (0, 1), got {opt.noise_alpha}")
 
-    def score(fr: FitResult, prev: FitResult) -> None:
-        """Held-out tests and BIC of ``fr`` against the model ``prev`` it extends."""
-        e0 = ((y_f - prev.pred) / sigma)[held]
-        e1 = ((y_f - fr.pred) / sigma)[held]
-        fr.dm_stat, fr.dm_p_value = dm_test(e0, e1, hac)
-        fr.lr_z, fr.p_value = heldout_lr_test(
-            np.where(held, y_f - prev.pred, 0.0), np.where(held, fr.pred - prev.pred, 0.0), cov
-        )
-        fr.rel_improvement = 1.0 - fr.mse_heldout / prev.mse_heldout
-        fr.delta_bic = fr.bic - prev.bic
 
-    def claimable(fr: FitResult, level: float) -> bool:
-        return bool(
-            fr.delta_bic < 0 and fr.rel_improvement >= opt.min_improvement and fr.p_value < level
-        )
-
-    base = _fit(ev, [[]], [], y_f, sigma, train, held, opt.max_nfev)
+def _forward_search(
+    search: _Search, base: FitResult, cands: list[Candidate]
+) -> tuple[list[FitResult], list[list[FitResult]], FitResult]:
+    """Forward steps (module docstring, items 2-5): returns (accepted, steps, final)."""
+    opt = search.opt
     current = base
     accepted: list[FitResult] = []
     steps: list[list[FitResult]] = []
-    cands = candidate_list(model, data, train, opt.candidates)
     for _ in range(opt.max_effects):
-        used = {lab for lab in current.labels}
         used_names = {lab.split("[")[0] for lab in current.labels}
-        todo = [c for c in cands if c.label not in used and c.name not in used_names]
+        todo = [c for c in cands if c.name not in used_names]
         if not todo:
             break
         results = []
+        n_fixed = len(current.effects)
         for cand in todo:
             starts = _start_sets(current.effects, cand)
-            fr = _fit(
-                ev, starts, [*current.labels, cand.label], y_f, sigma, train, held, opt.max_nfev
-            )
-            score(fr, current)
+            fr = search.fit(starts, [*current.labels, cand.label], n_fixed)
+            search.score(fr, current)
             results.append(fr)
         level = opt.alpha / len(results)
         for fr in results:
-            fr.claimable = claimable(fr, level)
+            fr.claimable = search.claimable(fr, level)
         steps.append(results)
         ok = [fr for fr in results if fr.claimable]
         if not ok:
             break
-        key = (lambda f: f.mse_heldout) if opt.select == "heldout" else (lambda f: f.bic_all)
-        current = min(ok, key=key)
-        current.alternatives = [
-            f.labels[-1]
-            for f in ok
-            if f is not current and f.bic_all - current.bic_all < opt.ambiguity_bic
-        ]
-        accepted.append(current)
-
-    if len(accepted) == 2 and opt.swap:
-        accepted, current = _swap_refine(
-            accepted, base, cands, ev, y_f, sigma, train, held, opt, score, claimable
+        key: Callable[[FitResult], float] = (
+            (lambda f: f.mse_heldout) if opt.select == "heldout" else (lambda f: f.bic_all)
         )
+        if n_fixed:
+            ok = _joint_refits(search, results, ok, current, level, key)
+        chosen = min(ok, key=key)
+        chosen.equivalents = search.equivalents(chosen, results)
+        current = chosen
+        accepted.append(current)
+    if len(accepted) == 2 and opt.swap:
+        accepted, current = _swap_refine(search, accepted, base, cands)
+    return accepted, steps, current
 
+
+def _joint_refits(
+    search: _Search,
+    results: list[FitResult],
+    ok: list[FitResult],
+    current: FitResult,
+    level: float,
+    key: Callable[[FitResult], float],
+) -> list[FitResult]:
+    """The ``joint_top`` best claimable fits of a step after the first (fitted with the earlier
+    effects held) refitted with every parameter free (:meth:`_Search.joint`), in place in
+    ``results``: held earlier effects bias the ranking of the new one (a dead zone fitted
+    without the offset favours a gain). Returns the claimable fits."""
+    for fr in sorted(ok, key=key)[: search.opt.joint_top]:
+        results[results.index(fr)] = search.joint(fr, current, level)
+    return [fr for fr in results if fr.claimable]
+
+
+def identify(
+    model: LineModel,
+    data: RunData,
+    options: IdentifyOptions | None = None,
+    exclude: np.ndarray | None = None,
+) -> Identification:
+    """Find the undeclared effects in ``data`` relative to ``model`` (see module docstring).
+
+    ``exclude``: samples to leave out (flagged by the data-quality check).
+    """
+    opt = options or IdentifyOptions()
+    _check_options(opt)
+    ev = _Evaluator(model, data)
+    cleaned = hampel(data.measured, variant="pearson", min_scale=ev.sigma)
+    y, outl = cleaned.y, cleaned.mask
+    split = make_split(data.t_s, opt.split, opt.train_fraction, opt.block_s, opt.skip_s)
+    usable = np.isfinite(y) & (split.train | split.heldout)
+    if exclude is not None:
+        usable &= ~np.asarray(exclude, dtype=bool)
+    train = split.train & usable
+    held = split.heldout & usable
+    if train.sum() < 10 or held.sum() < 10:
+        raise ValueError(
+            f"usable samples must be >= 10 in each window, got {int(train.sum())} training "
+            f"and {int(held.sum())} held out"
+        )
+    ev.set_measured(y, usable)
+    search = _Search(ev, train, held, opt)
+    base = search.fit([[]], [])
+    cands = candidate_list(model, data, train, opt.candidates)
+    accepted, steps, current = _forward_search(search, base, cands)
+    t0 = time.process_time()
+    tests_on = held if accepted else (train | held)
+    regress = _level_and_trend(ev, tests_on)
+    noise_tests = innovation_tests(current.innov[tests_on], regress, alpha=opt.noise_alpha)
+    tests_s = search.tests_s + time.process_time() - t0
     if accepted:
-        status = "explained"
+        status = "explained" if noise_tests["consistent"] else "partly_explained"
     else:
-        r = (y_f - base.pred) / sigma
-        nmse_tr = float(np.mean(r[train] ** 2))
-        nmse_ho = float(np.mean(r[held] ** 2))
-        status = "unexplained" if max(nmse_tr, nmse_ho) > opt.unexplained_nmse else "consistent"
+        status = "consistent" if noise_tests["consistent"] else "unexplained"
     return Identification(
         status=status,
         accepted=accepted,
@@ -533,8 +664,36 @@ def identify(
         final=current,
         split=split,
         measured=y,
-        sigma=sigma,
+        sigma=ev.sigma,
         outliers=outl,
         options=opt,
+        usable=usable,
+        noise_tests=noise_tests,
+        whitener=ev.whiten,
         n_eval=ev.n_eval,
+        evaluator=ev,
+        tests_s=tests_s,
     )
+
+
+def _level_and_trend(ev: _Evaluator, mask: np.ndarray) -> np.ndarray:
+    """Innovations of a unit level and of a linear trend (per hour, centred on the tested
+    samples) in the residual, on the samples ``mask``: the regressors of the level and trend
+    test under the coloured noise."""
+    t = ev.t
+    tc = (t - float(np.mean(t[mask]))) / 3600.0
+    cols = [
+        ev.whiten(np.where(ev.usable, 1.0 / ev.sigma, 0.0)),
+        ev.whiten(np.where(ev.usable, tc / ev.sigma, 0.0)),
+    ]
+    return np.column_stack(cols)[mask]
+
+
+def refit(ident: Identification, effects: Sequence[Effect], labels: Sequence[str]) -> FitResult:
+    """A fit of ``effects`` (starting from their values) on the identification's training
+    window, scored against its declared model: e.g. the product-side reading of a finding."""
+    ev = ident.evaluator
+    search = _Search(ev, ident.train, ident.heldout, ident.options)
+    fr = search.fit([list(effects)], list(labels))
+    search.score(fr, ident.base)
+    return fr

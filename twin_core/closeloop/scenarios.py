@@ -27,10 +27,19 @@ EFFECT_MAGNITUDES: dict[str, list[dict[str, float]]] = {
     "sensor_lag": [{"tau_s": 4.0}, {"tau_s": 10.0}],
     "refill_surge": [{"amplitude": 0.3, "tau_s": 30.0}, {"amplitude": 0.6, "tau_s": 60.0}],
     "feed_factor_drift": [{"rate_per_h": 0.15}, {"rate_per_h": -0.3}],
+    "feed_bias": [{"bias": 0.06}, {"bias": -0.12}],
+    "component_loss": [{"fraction": 0.06}, {"fraction": 0.15}],
+    "holdup": [{"mass_g": 40.0, "tau_s": 300.0}, {"mass_g": 50.0, "tau_s": 600.0}],
 }
 
-#: feeder the feeder-stage effects act on in the scenario
-EFFECT_TARGETS: dict[str, str] = {"refill_surge": "api", "feed_factor_drift": "api"}
+#: feeder (feeder-stage effects) or component (unit-stage effects) an effect acts on
+EFFECT_TARGETS: dict[str, str] = {
+    "refill_surge": "api",
+    "feed_factor_drift": "api",
+    "feed_bias": "api",
+    "component_loss": "api",
+    "holdup": "api",
+}
 
 
 def standard_scenario(duration_s: float = 1500.0) -> tuple[LineConfig, list[FlowDisturbance]]:

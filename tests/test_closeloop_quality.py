@@ -1,0 +1,152 @@
+"""Data quality before the fit (twin_core.closeloop.quality) and the ``data_quality`` status.
+
+Validated against injected faults of known kind and interval on runs of the plant simulator
+(``twin_core.plant.simulate_line``, the standard scenario with the seed's NIR noise: white +
+1/f + proportional + isolated outliers). Each detection threshold is set so that the seed's own
+noise trips it with probability < ``false_alarm`` = 1e-3 per series and kind over a record
+(quality module docstring), so a clean record of this test is flagged with probability < 2 %
+(18 series x kind checks); the runs use fixed seeds. ``benchmarks/closeloop_quality.py``
+measures the rates on 2-hour windows.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twin_core.closeloop import RunData, close_loop
+from twin_core.closeloop.data import StreamStamps
+from twin_core.closeloop.quality import (
+    QualityOptions,
+    burst_threshold,
+    check_data_quality,
+    stamp_flags,
+)
+from twin_core.closeloop.scenarios import standard_scenario
+from twin_core.plant import LineModel, simulate_line
+
+DURATION = 1500.0
+
+
+def _clean(seed: int, noise_scale: float = 1.0) -> tuple[LineModel, RunData]:
+    cfg, dist = standard_scenario(DURATION)
+    if noise_scale != 1.0:
+        n = cfg.sensor.noise
+        cfg.sensor.noise = n.model_copy(
+            update={
+                "white_sd": n.white_sd * noise_scale,
+                "pink_sd": n.pink_sd * noise_scale,
+                "proportional_rel": n.proportional_rel * noise_scale,
+            }
+        )
+    run = simulate_line(cfg, DURATION, seed=seed, disturbances=dist)
+    return LineModel(cfg), RunData.from_line_run(run)
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return _clean(7)
+
+
+def _kinds(q, series):
+    return [f.kind for f in q.flags if f.series == series]
+
+
+@pytest.mark.parametrize("seed,scale", [(1, 1.0), (2, 2.0), (3, 1.0), (4, 2.0)])
+def test_clean_records_give_no_flags(seed, scale):
+    """The seed's noise at 1x and 2x, refills, flow dips and tracer pulses: nothing flagged."""
+    model, data = _clean(seed, scale)
+    q = check_data_quality(data, model)
+    assert q.flags == [] and not q.exclude.any()
+
+
+def test_a_stuck_probe_of_30_s_is_found_and_left_out(clean):
+    model, data = clean
+    y = data.measured.copy()
+    a = 700
+    y[a : a + 30] = y[a]
+    bad = RunData(data.t_s, y, data.inputs, data.events)
+    q = check_data_quality(bad, model)
+    assert _kinds(q, "nir") == ["stuck"]
+    f = q.flags[0]
+    assert f.t_start_s == data.t_s[a] and f.t_end_s == data.t_s[a + 29] and f.n_samples == 30
+    assert q.exclude[a : a + 30].all() and q.exclude.sum() == 30
+
+
+def test_a_stuck_feeder_flow_is_found_and_its_reach_left_out(clean):
+    """A feeder flow frozen for 30 s: flagged on that feeder, and the outlet samples it reaches
+    (until the blender's t(F = 0.995) after its end) are left out."""
+    model, data = clean
+    flows = {k: v.copy() for k, v in data.inputs.flows_kg_h.items()}
+    a = 600
+    flows["api"][a : a + 30] = flows["api"][a]
+    inp = data.inputs
+    bad_inp = type(inp)(inp.t_s, flows, inp.components, inp.refilling, inp.tracers)
+    q = check_data_quality(RunData(data.t_s, data.measured, bad_inp, data.events), model)
+    assert _kinds(q, "api:flow") == ["stuck"]
+    assert q.exclude[a : a + 30].all() and not q.exclude[:a].any()
+    assert q.exclude.sum() > 30
+
+
+def test_clipping_and_spike_burst_and_gap_are_told_apart(clean):
+    model, data = clean
+    y = data.measured.copy()
+    top = float(np.nanmax(y)) + 1.0
+    y[300:306] = top
+    y[900:908:2] += 6.0
+    y[1200:1206] = np.nan
+    q = check_data_quality(RunData(data.t_s, y, data.inputs, data.events), model)
+    assert sorted(_kinds(q, "nir")) == ["clipping", "gap", "spike_burst"]
+    by = {f.kind: f for f in q.flags}
+    assert by["clipping"].n_samples == 6 and by["gap"].n_samples == 6
+    burst = by["spike_burst"]
+    assert burst.t_start_s == data.t_s[900] and burst.t_end_s == data.t_s[906]
+    assert 4 <= burst.n_samples <= 7  # the 4 spikes (a sample between them may join them)
+
+
+def test_isolated_outliers_are_noise_not_a_burst():
+    """The seed's isolated spikes (outlier_prob 0.003) never make a burst: the burst size is
+    the smallest count the background rate makes improbable (binomial tail < 1e-3 / n)."""
+    k = burst_threshold(10, 0.003, 7200, 1e-3)
+    assert k == 4
+    from scipy import stats
+
+    assert stats.binom.sf(k - 1, 10, 0.003) < 1e-3 / 7200 <= stats.binom.sf(k - 2, 10, 0.003)
+
+
+def test_stamps_duplicates_time_jumps_and_dropouts():
+    """A repeated stamp, a clock jump (sequence numbers advance by one) and a dropout (they
+    skip) are told apart; stamps going backwards are a time jump."""
+    t = np.arange(0.0, 100.0)
+    seq = np.arange(100)
+    t_dup = np.insert(t, 10, t[10])
+    s_dup = np.insert(seq, 10, seq[10])
+    assert [f.kind for f in stamp_flags("nir", StreamStamps(t_dup, s_dup), 1.0)] == [
+        "duplicate_stamp"
+    ]
+    t_jump = np.where(t >= 50, t + 20.0, t)
+    assert [f.kind for f in stamp_flags("nir", StreamStamps(t_jump, seq), 1.0)] == ["time_jump"]
+    keep = (t < 50) | (t >= 60)
+    drop = stamp_flags("nir", StreamStamps(t[keep], seq[keep]), 1.0)
+    assert [(f.kind, f.n_samples) for f in drop] == [("gap", 10)]
+    back = np.where(t >= 50, t - 5.0, t)
+    assert "time_jump" in [f.kind for f in stamp_flags("nir", StreamStamps(back, seq), 1.0)]
+
+
+def test_options_are_checked():
+    with pytest.raises(ValueError, match="min_stuck_samples"):
+        QualityOptions(min_stuck_samples=1)
+
+
+def test_a_record_whose_only_fault_is_flagged_gets_data_quality_status(clean):
+    """A stuck probe (60 s at a reading 1 % w/w off) on a record without an undeclared effect:
+    left out, no effect claimed, status ``data_quality`` (without the check the stuck stretch
+    is residual beyond the noise)."""
+    model, data = clean
+    y = data.measured.copy()
+    y[500:560] = y[500] + 1.0
+    res = close_loop(RunData(data.t_s, y, data.inputs, data.events), model)
+    rep = res.to_dict()
+    assert res.status == "data_quality" and rep["effects"] == []
+    assert [f["kind"] for f in rep["data_quality"]] == ["stuck"]
+    assert rep["decision"]["samples_left_out"] == 60
