@@ -1,10 +1,17 @@
-"""Report of ``twin close-loop``: effects found, errors before/after, decision and diagnostics.
+"""Report of ``twin close-loop``: data quality, effects found with the explanations the data
+cannot tell apart, the product-safe reading, errors before/after, decision and diagnostics.
 
 Written by ``twin_core.closeloop.CloseLoopResult.to_dict()`` and validated with
 :class:`CloseLoopReport` before it is written as JSON. Concentrations are % w/w, times s.
 
 :class:`ModelFinding` is the live twin's message of the same loop run on a window of the bus
-(``twin/<line>/closeloop/finding``, published by the closeloop service, adopted by the blender).
+(``twin/<line>/closeloop/finding``, published by the closeloop service, adopted by the blender,
+acted on by the diverter).
+
+Report version 2 (contract 1.2): ``status`` has five values; ``data_quality``,
+``product_at_risk``, ``product_reading``, ``discriminating_measurement``, ``structure``,
+``remaining`` and ``noise_tests`` are new; every effect lists its ``equivalents`` and ``side``;
+``decision`` has ``noise_alpha`` and ``ambiguity_bic`` instead of ``unexplained_nmse``.
 """
 
 from __future__ import annotations
@@ -18,100 +25,96 @@ from schemas.base import Finite, Ident, Message, NonNegative, StrictModel, Text
 __all__ = [
     "CandidateScore",
     "CloseLoopReport",
+    "DataQualityFlag",
     "Decision",
+    "DiscriminatingMeasurement",
     "EffectFound",
     "EffectSpec",
+    "Equivalent",
     "ErrorPair",
     "Errors",
+    "MeasurementOption",
     "ModelFinding",
     "ParamEstimate",
+    "ProductReading",
+    "Status",
     "StructureEntry",
     "Windows",
     "WindowError",
 ]
 
+#: explained: effects claimed and the rest is the noise; partly_explained: effects claimed, the
+#: rest is not the noise (``remaining`` says what); unexplained: beyond the noise, no effect
+#: passes the test; consistent: the declared model's residual is the noise; data_quality: data
+#: faults were flagged and left out, and the rest is the noise
+Status = Literal["consistent", "explained", "partly_explained", "unexplained", "data_quality"]
 
-class ParamEstimate(StrictModel):
-    """A fitted parameter with its standard error and 95 % interval (clipped to bounds)."""
-
-    name: str
-    value: Finite
-    stderr: NonNegative | None = None
-    ci95_low: Finite | None = None
-    ci95_high: Finite | None = None
-    unit: str
-    lower: Finite
-    upper: Finite
+Side = Literal["probe", "product"]
 
 
-class EffectFound(StrictModel):
-    """An effect claimed: registry name, target feeder (feeder effects), parameters, scores
-    of the step that accepted it."""
+class EffectSpec(StrictModel):
+    """An effect of a line model in dict form (``twin_core.plant.effects.make_effect``)."""
 
+    name: Ident = Field(description="effect name, a key of twin_core.plant.effects.EFFECTS")
+    target: Ident | None = Field(None, description="feeder (or component, unit stage) it acts on")
+    params: dict[Ident, Finite] = Field(default_factory=dict, description="parameter values")
+
+
+class DataQualityFlag(StrictModel):
+    """A data fault found before the fit (``twin_core.closeloop.quality``); its samples were
+    left out of the identification."""
+
+    kind: Literal["stuck", "clipping", "spike_burst", "gap", "time_jump", "duplicate_stamp"]
+    series: str = Field(description="nir or <feeder>:flow")
+    t_start_s: Finite
+    t_end_s: Finite
+    n_samples: int = Field(ge=0)
+
+
+class Equivalent(StrictModel):
+    """An explanation the data cannot tell from the effect it is listed with: whole-record BIC
+    within the ambiguity margin, held-out error lowered by the margin too."""
+
+    label: str
     name: str
     target: str | None = None
-    label: str
-    params: list[ParamEstimate]
-    delta_bic: Finite | None = None
-    heldout_rel_improvement: Finite | None = None
-    lr_z: Finite | None = None
-    p_value: Finite | None = Field(None, ge=0.0, le=1.0)
-    alternatives: list[str] = Field(
-        default_factory=list,
-        description="other candidates that explain the data about as well (BIC within the "
-        "ambiguity margin): not distinguishable with this excitation",
-    )
-
-
-class WindowError(StrictModel):
-    rmse: NonNegative
-    mae: NonNegative
-    n: int = Field(ge=0)
-
-
-class ErrorPair(StrictModel):
-    train: WindowError
-    heldout: WindowError
-
-
-class Errors(StrictModel):
-    """RMSE and MAE of measured - predicted (% w/w, Hampel outliers replaced)."""
-
-    before: ErrorPair
-    after: ErrorPair
-
-
-class Windows(StrictModel):
-    split: Literal["tail", "blocks"]
-    description: str
-    train_s: list[Finite] = Field(min_length=2, max_length=2)
-    heldout_s: list[Finite] = Field(min_length=2, max_length=2)
-    n_train: int = Field(ge=0)
-    n_heldout: int = Field(ge=0)
-
-
-class Decision(StrictModel):
-    alpha: float = Field(gt=0.0, lt=1.0)
-    min_improvement: Finite
-    max_effects: int = Field(ge=0)
-    test: str
-    unexplained_nmse: Finite
-    outliers_removed: int = Field(ge=0)
-
-
-class CandidateScore(StrictModel):
-    """One candidate tried at one step of the forward search."""
-
-    label: str
+    side: Side
     params: dict[str, Finite]
-    delta_bic: Finite | None = None
+    delta_bic: Finite = Field(description="its whole-record BIC minus the effect's")
     heldout_rel_improvement: Finite | None = None
-    lr_z: Finite | None = None
-    p_value: Finite | None = None
-    dm_stat: Finite | None = None
-    dm_p_value: Finite | None = None
-    claimable: bool
-    converged: bool
+    p_value: Finite | None = Field(None, ge=0.0, le=1.0)
+
+
+class MeasurementOption(StrictModel):
+    """An experiment at its chosen size and its predicted power to separate two readings."""
+
+    kind: Literal["assay", "tracer_pulse", "setpoint_step"]
+    size: Finite
+    unit: str
+    power: float = Field(ge=0.0, le=1.0)
+    expected_log_lr: NonNegative
+    text: str
+
+
+class DiscriminatingMeasurement(MeasurementOption):
+    """The recommended measurement (``twin_core.closeloop.discriminate``, Box & Hill 1967),
+    the two readings it separates and every option considered."""
+
+    between: list[str] = Field(default_factory=list)
+    options: list[MeasurementOption] = Field(default_factory=list)
+
+
+class ProductReading(StrictModel):
+    """The product-side reading of a finding whose explanations span both sides of the probe:
+    the model the twin acts on, and its outlet over the window."""
+
+    effects: list[EffectSpec] = Field(description="effects added to the declared model")
+    labels: list[str]
+    outlet_mean_pct_w_w: Finite
+    outlet_min_pct_w_w: Finite
+    outlet_max_pct_w_w: Finite
+    t_start_s: Finite
+    t_end_s: Finite
 
 
 class StructureEntry(StrictModel):
@@ -147,18 +150,115 @@ class StructureEntry(StrictModel):
         return self
 
 
+class ParamEstimate(StrictModel):
+    """A fitted parameter with its standard error and 95 % interval (clipped to bounds)."""
+
+    name: str
+    value: Finite
+    stderr: NonNegative | None = None
+    ci95_low: Finite | None = None
+    ci95_high: Finite | None = None
+    unit: str
+    lower: Finite
+    upper: Finite
+
+
+class EffectFound(StrictModel):
+    """An effect claimed: registry name, target feeder (feeder effects), parameters, scores
+    of the step that accepted it."""
+
+    name: str
+    target: str | None = None
+    label: str
+    params: list[ParamEstimate]
+    delta_bic: Finite | None = None
+    heldout_rel_improvement: Finite | None = None
+    lr_z: Finite | None = None
+    p_value: Finite | None = Field(None, ge=0.0, le=1.0)
+    side: Side = "product"
+    alternatives: list[str] = Field(
+        default_factory=list,
+        description="labels of the equivalents: candidates that explain the data about as "
+        "well, not distinguishable with this excitation",
+    )
+    equivalents: list[Equivalent] = Field(default_factory=list)
+
+
+class WindowError(StrictModel):
+    rmse: NonNegative
+    mae: NonNegative
+    n: int = Field(ge=0)
+
+
+class ErrorPair(StrictModel):
+    train: WindowError
+    heldout: WindowError
+
+
+class Errors(StrictModel):
+    """RMSE and MAE of measured - predicted (% w/w, Hampel outliers replaced)."""
+
+    before: ErrorPair
+    after: ErrorPair
+
+
+class Windows(StrictModel):
+    split: Literal["tail", "blocks"]
+    description: str
+    train_s: list[Finite] = Field(min_length=2, max_length=2)
+    heldout_s: list[Finite] = Field(min_length=2, max_length=2)
+    n_train: int = Field(ge=0)
+    n_heldout: int = Field(ge=0)
+
+
+class Decision(StrictModel):
+    alpha: float = Field(gt=0.0, lt=1.0)
+    min_improvement: Finite
+    max_effects: int = Field(ge=0)
+    test: str
+    noise_alpha: float = Field(gt=0.0, lt=1.0)
+    ambiguity_bic: NonNegative
+    outliers_removed: int = Field(ge=0)
+    samples_left_out: int = Field(0, ge=0, description="flagged by the data-quality check")
+
+
+class CandidateScore(StrictModel):
+    """One candidate tried at one step of the forward search."""
+
+    label: str
+    params: dict[str, Finite]
+    delta_bic: Finite | None = None
+    heldout_rel_improvement: Finite | None = None
+    lr_z: Finite | None = None
+    p_value: Finite | None = None
+    dm_stat: Finite | None = None
+    dm_p_value: Finite | None = None
+    claimable: bool
+    converged: bool
+
+
 class CloseLoopReport(StrictModel):
     """The close-loop report (JSON)."""
 
-    version: int = 1
+    version: int = 2
     recording: str
     line: str
     sensor_component: str
-    status: Literal["explained", "unexplained", "consistent"] = Field(
-        description="explained: effects claimed; unexplained: residual beyond the declared "
-        "noise but no effect passes the test; consistent: residual explained by the noise"
-    )
+    status: Status = Field(description="see schemas.closeloop.Status")
+    data_quality: list[DataQualityFlag] = Field(default_factory=list)
     effects: list[EffectFound]
+    product_at_risk: bool = Field(
+        False,
+        description="a probe-side and a product-side explanation are both consistent with the "
+        "data: the product may be off target; the twin acts on product_reading",
+    )
+    product_reading: ProductReading | None = None
+    discriminating_measurement: DiscriminatingMeasurement | None = None
+    structure: list[StructureEntry] = Field(default_factory=list)
+    remaining: str = Field("", description="what the model leaves unexplained, in words")
+    noise_tests: dict[str, Any] = Field(
+        default_factory=dict, description="innovation tests behind the status"
+    )
     errors: Errors
     windows: Windows
     decision: Decision
@@ -173,32 +273,38 @@ class CloseLoopReport(StrictModel):
         description="NIR noise used by the decisions: source 'declared' or 'estimated' "
         "(twin_core.closeloop.noise) and its white_sd, pink_sd, proportional_rel",
     )
-
-
-class EffectSpec(StrictModel):
-    """An effect of a line model in dict form (``twin_core.plant.effects.make_effect``)."""
-
-    name: Ident = Field(description="effect name, a key of twin_core.plant.effects.EFFECTS")
-    target: Ident | None = Field(None, description="feeder a feeder-stage effect acts on")
-    params: dict[Ident, Finite] = Field(default_factory=dict, description="parameter values")
+    timing_s: dict[str, NonNegative] = Field(
+        default_factory=dict,
+        description="CPU seconds of the analysis: data quality, fits, tests, attribution "
+        "(equivalents, product reading, discriminating design), structure, diagnostics",
+    )
 
 
 class ModelFinding(Message):
     """What the online close-loop found on one window. Key: ``twin/<line>/closeloop/finding``.
 
-    ``status``: as :class:`CloseLoopReport`; ``effects``: the effects claimed on this window
-    (parameters with standard errors); ``model_effects``: every effect of the model after this
-    window (the ones adopted before plus the new ones: what the blender adopts);
-    ``errors``: RMSE / MAE of the model before and after, on the window's training and held-out
-    parts.
+    ``status``, ``data_quality``, ``product_at_risk``, ``product_reading``,
+    ``discriminating_measurement``, ``structure``, ``remaining``: as :class:`CloseLoopReport`;
+    ``effects``: the effects claimed on this window (parameters with standard errors and their
+    equivalents); ``model_effects``: every effect of the model after this window (the ones
+    adopted before plus the new ones; the product-side reading when the product is at risk:
+    what the blender adopts); ``errors``: RMSE / MAE of the model before and after, on the
+    window's training and held-out parts. The diverter diverts the window when the product is
+    at risk and the product-side outlet leaves the specification.
     """
 
     SIGNAL = "finding"
 
     finding_id: Ident = Field(description="unique id: <line>.closeloop-<window end, ms>")
-    status: Literal["explained", "unexplained", "consistent"]
+    status: Status
     t_start_s: NonNegative = Field(description="window start, plant time, s")
     t_end_s: NonNegative = Field(description="window end, plant time, s")
+    data_quality: list[DataQualityFlag] = Field(default_factory=list)
     effects: list[EffectFound] = Field(default_factory=list)
     model_effects: list[EffectSpec] = Field(default_factory=list)
+    product_at_risk: bool = False
+    product_reading: ProductReading | None = None
+    discriminating_measurement: DiscriminatingMeasurement | None = None
+    structure: list[StructureEntry] = Field(default_factory=list)
+    remaining: str = ""
     errors: Errors

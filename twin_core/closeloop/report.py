@@ -1,27 +1,48 @@
-"""Close the loop on a recording: residual, diagnosis, fix, and the before/after proof.
+"""Close the loop on a recording: data quality, residual, diagnosis, fix, the before/after proof,
+and an honest account of what is and is not explained.
 
-``close_loop(run_data, declared_model, options)`` runs :func:`identify` and returns a
-:class:`CloseLoopResult` whose ``to_dict()`` is the JSON report (validated by
-``schemas.closeloop.CloseLoopReport``): the effects found with parameters and uncertainties,
-RMSE / MAE before and after on the training and held-out windows, the candidates tried, the
-decision rule, residual diagnostics before and after, and the augmented model.
-``online_finding`` is the same on a window of arrays, for the live twin.
+``close_loop(run_data, declared_model, options)``:
+
+1. data quality first (``twin_core.closeloop.quality``): flagged samples are left out;
+2. identification (``twin_core.closeloop.identify``): effects, their equivalent explanations,
+   the honest status; a record whose flagged faults are all that is wrong (no effect claimed,
+   the rest the noise) gets status ``data_quality``, never a process effect;
+3. product-safe attribution (``twin_core.closeloop.attribution``) and, when the product is at
+   risk, the measurement that would separate the readings (``twin_core.closeloop.discriminate``);
+4. structure beyond the effect library (``twin_core.closeloop.structure``: parameters that change
+   with the operating point or time, periodic content, a blender-response correction) in what
+   the library left;
+5. residual diagnostics before and after.
+
+Returns a :class:`CloseLoopResult` whose ``to_dict()`` is the JSON report (validated by
+``schemas.closeloop.CloseLoopReport``). ``online_finding`` is the same on a window of arrays,
+for the live twin.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from twin_core.closeloop.data import RunData
+from twin_core.closeloop.attribution import Attribution, attribute, outlet_summary
+from twin_core.closeloop.data import RunData, StreamStamps
 from twin_core.closeloop.diagnostics import pulse_responses, residual_diagnostics
-from twin_core.closeloop.identify import FitResult, Identification, IdentifyOptions, identify
+from twin_core.closeloop.discriminate import Design, DesignOptions, design_measurement
+from twin_core.closeloop.identify import (
+    FitResult,
+    Identification,
+    IdentifyOptions,
+    effect_side,
+    identify,
+)
+from twin_core.closeloop.quality import DataQuality, QualityOptions, check_data_quality
 from twin_core.plant.model import LineInputs, LineModel
 
-REPORT_VERSION = 1
+REPORT_VERSION = 2
 
 
 def _clean(x: Any) -> Any:
@@ -51,7 +72,7 @@ def _errors(y: np.ndarray, pred: np.ndarray, mask: np.ndarray) -> dict[str, floa
     }
 
 
-def _effect_entries(fr: FitResult, prev: FitResult | None) -> list[dict[str, Any]]:
+def _effect_entries(fr: FitResult) -> list[dict[str, Any]]:
     out = []
     for e, se in zip(fr.effects, fr.stderr or [np.full(len(x.params), np.nan) for x in fr.effects]):
         params = []
@@ -70,7 +91,35 @@ def _effect_entries(fr: FitResult, prev: FitResult | None) -> list[dict[str, Any
                     "upper": p.upper,
                 }
             )
-        out.append({"name": e.name, "target": e.target, "label": e.label(), "params": params})
+        out.append(
+            {
+                "name": e.name,
+                "target": e.target,
+                "label": e.label(),
+                "side": e.side,
+                "params": params,
+            }
+        )
+    return out
+
+
+def _equivalent_entries(step: FitResult) -> list[dict[str, Any]]:
+    """The equivalents of an accepted step with their scores (``schemas.closeloop.Equivalent``)."""
+    out = []
+    for f in step.equivalents:
+        e = f.effects[-1]
+        out.append(
+            {
+                "label": f.labels[-1],
+                "name": e.name,
+                "target": e.target,
+                "side": effect_side(f.labels[-1]),
+                "params": dict(e.values),
+                "delta_bic": f.bic_all - step.bic_all,
+                "heldout_rel_improvement": f.rel_improvement,
+                "p_value": f.p_value,
+            }
+        )
     return out
 
 
@@ -90,9 +139,37 @@ def _candidate_row(fr: FitResult) -> dict[str, Any]:
     }
 
 
+def remaining_text(ident: Identification, structure: Sequence[Mapping[str, Any]]) -> str:
+    """What the model leaves unexplained, in words (empty when its innovations are the noise)."""
+    nt = ident.noise_tests
+    if nt.get("consistent", True) and not structure:
+        return ""
+    where = "held-out" if ident.accepted else "training and held-out"
+    parts = []
+    p = nt.get("p", {})
+    if "scale" in nt.get("failed", []):
+        parts.append(
+            f"the {where} residual is {nt['mse']:.2f} x the noise variance (noise band <= "
+            f"{nt['mse_band']:.2f})"
+        )
+    if "level_trend" in nt.get("failed", []):
+        z = nt.get("level_trend_z", [0.0, 0.0])
+        parts.append(f"a level (z {z[0]:+.1f}) or trend (z {z[1]:+.1f}) is left")
+    if "ljung_box" in nt.get("failed", []):
+        parts.append(f"short-lag structure is left (Ljung-Box p {p['ljung_box']:.1e})")
+    if "cumulative_periodogram" in nt.get("failed", []):
+        parts.append(
+            "the residual spectrum is not the noise's (cumulative periodogram p "
+            f"{p['cumulative_periodogram']:.1e})"
+        )
+    parts += [str(s.get("summary", "")) for s in structure]
+    return "; ".join(x for x in parts if x)
+
+
 @dataclass
 class CloseLoopResult:
-    """Result of :func:`close_loop`: the identification plus the series behind the figures."""
+    """Result of :func:`close_loop`: the identification, the quality check, the attribution, and
+    the series behind the figures."""
 
     data: RunData
     model: LineModel
@@ -101,15 +178,26 @@ class CloseLoopResult:
     diagnostics_after: dict[str, Any]
     recording: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+    quality: DataQuality | None = None
+    attribution: Attribution | None = None
+    design: Design | None = None
+    structure: list[dict[str, Any]] = field(default_factory=list)
+    timing_s: dict[str, float] = field(default_factory=dict)
 
     @property
     def status(self) -> str:
+        if self.quality is not None and self.quality.flags and self.ident.status == "consistent":
+            return "data_quality"
         return self.ident.status
 
     @property
     def effects_found(self) -> list[str]:
         """Labels of the effects claimed (empty: none)."""
         return list(self.ident.final.labels) if self.ident.accepted else []
+
+    @property
+    def product_at_risk(self) -> bool:
+        return bool(self.attribution is not None and self.attribution.product_at_risk)
 
     @property
     def predicted_before(self) -> np.ndarray:
@@ -123,16 +211,62 @@ class CloseLoopResult:
         """The declared model with the claimed effects (fitted parameters) added."""
         return self.model.augmented(self.ident.final.effects if self.ident.accepted else [])
 
+    def acted_on_model(self) -> LineModel:
+        """The model the twin acts on: the product-side reading when the product is at risk,
+        else the augmented model."""
+        if self.product_at_risk and self.attribution.reading is not None:
+            return self.model.augmented(self.attribution.reading.effects)
+        return self.augmented_model()
+
     def errors(self) -> dict[str, dict[str, dict[str, float]]]:
         y = self.ident.measured
-        sp = self.ident.split
         out = {}
         for key, pred in (("before", self.predicted_before), ("after", self.predicted_after)):
             out[key] = {
-                "train": _errors(y, pred, sp.train),
-                "heldout": _errors(y, pred, sp.heldout),
+                "train": _errors(y, pred, self.ident.train),
+                "heldout": _errors(y, pred, self.ident.heldout),
             }
         return out
+
+    def product_reading(self) -> dict[str, Any] | None:
+        """The product-side reading (``schemas.closeloop.ProductReading``) when the product is
+        at risk."""
+        if not self.product_at_risk or self.attribution.reading is None:
+            return None
+        fr = self.attribution.reading
+        model = self.model.augmented(fr.effects)
+        comp = self.model.config.sensor.component
+        outlet = model.outlet(self.data.inputs)[comp]
+        mask = self.ident.train | self.ident.heldout
+        t = self.data.t_s[mask]
+        return {
+            "effects": [e.to_dict() for e in fr.effects],
+            "labels": list(fr.labels),
+            **outlet_summary(outlet, mask),
+            "t_start_s": float(t[0]),
+            "t_end_s": float(t[-1]),
+        }
+
+    def effect_entries(self) -> list[dict[str, Any]]:
+        """The claimed effects with their step scores and equivalents."""
+        idn = self.ident
+        if not idn.accepted:
+            return []
+        effects = []
+        for i, ent in enumerate(_effect_entries(idn.final)):
+            step = idn.accepted[i] if i < len(idn.accepted) else idn.final
+            ent.update(
+                {
+                    "delta_bic": step.delta_bic,
+                    "heldout_rel_improvement": step.rel_improvement,
+                    "lr_z": step.lr_z,
+                    "p_value": step.p_value,
+                    "alternatives": list(step.alternatives),
+                    "equivalents": _equivalent_entries(step),
+                }
+            )
+            effects.append(ent)
+        return effects
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON report (``schemas.closeloop.CloseLoopReport``)."""
@@ -140,23 +274,6 @@ class CloseLoopResult:
         t = self.data.t_s
         sp = idn.split
         o = idn.options
-        final = idn.final
-        effects = []
-        if idn.accepted:
-            per_effect = _effect_entries(final, None)
-            # scores of the step that accepted each effect
-            for i, ent in enumerate(per_effect):
-                step = idn.accepted[i] if i < len(idn.accepted) else final
-                ent.update(
-                    {
-                        "delta_bic": step.delta_bic,
-                        "heldout_rel_improvement": step.rel_improvement,
-                        "lr_z": step.lr_z,
-                        "p_value": step.p_value,
-                        "alternatives": list(step.alternatives),
-                    }
-                )
-                effects.append(ent)
         aug = self.augmented_model()
         return _clean(
             {
@@ -164,26 +281,40 @@ class CloseLoopResult:
                 "recording": self.recording or self.data.name,
                 "line": self.model.config.name,
                 "sensor_component": self.model.config.sensor.component,
-                "status": idn.status,
-                "effects": effects,
+                "status": self.status,
+                "data_quality": self.quality.to_list() if self.quality is not None else [],
+                "effects": self.effect_entries(),
+                "product_at_risk": self.product_at_risk,
+                "product_reading": self.product_reading(),
+                "discriminating_measurement": (
+                    self.design.to_dict() if self.design is not None else None
+                ),
+                "structure": self.structure,
+                "remaining": remaining_text(idn, self.structure),
+                "noise_tests": idn.noise_tests,
                 "errors": self.errors(),
                 "windows": {
                     "split": sp.kind,
                     "description": sp.description,
                     "train_s": [float(t[sp.train].min()), float(t[sp.train].max())],
                     "heldout_s": [float(t[sp.heldout].min()), float(t[sp.heldout].max())],
-                    "n_train": int(sp.train.sum()),
-                    "n_heldout": int(sp.heldout.sum()),
+                    "n_train": int(idn.train.sum()),
+                    "n_heldout": int(idn.heldout.sum()),
                 },
                 "decision": {
                     "alpha": o.alpha,
                     "min_improvement": o.min_improvement,
                     "max_effects": o.max_effects,
-                    "test": "held-out Gaussian likelihood ratio under the declared NIR noise "
-                    "(white + proportional + 1/f), one-sided, Bonferroni over the candidates of a "
-                    "step; plus BIC < current and held-out weighted MSE drop >= min_improvement",
-                    "unexplained_nmse": o.unexplained_nmse,
+                    "test": "held-out likelihood ratio on the innovations of the declared NIR "
+                    "noise (white + proportional + 1/f), one-sided, Bonferroni over the "
+                    "candidates of a step; plus BIC < current and held-out innovation MSE drop "
+                    ">= min_improvement; status from the innovation tests at noise_alpha",
+                    "noise_alpha": o.noise_alpha,
+                    "ambiguity_bic": o.ambiguity_bic,
                     "outliers_removed": int(idn.outliers.sum()),
+                    "samples_left_out": (
+                        int(self.quality.exclude.sum()) if self.quality is not None else 0
+                    ),
                 },
                 "candidates": [[_candidate_row(fr) for fr in step] for step in idn.steps],
                 "diagnostics_before": self.diagnostics_before,
@@ -193,6 +324,7 @@ class CloseLoopResult:
                     "effects": [e.to_dict() for e in aug.effects],
                 },
                 "n_model_evaluations": idn.n_eval,
+                "timing_s": self.timing_s,
             }
         )
 
@@ -210,9 +342,10 @@ def _diag(
         data.t_s,
         r,
         sigma=ident.sigma,
-        mask=ident.split.train | ident.split.heldout,
+        mask=ident.usable,
         inputs=data.inputs,
         events=data.events,
+        whitener=ident.whitener,
     )
     aug = model.augmented(effects or [])
     inp = data.inputs
@@ -238,33 +371,105 @@ def _diag(
     return d
 
 
+def find_library_structure(
+    data: RunData, model: LineModel, ident: Identification
+) -> list[dict[str, Any]]:
+    """Structure beyond the effect library in what the (augmented) model leaves, as
+    ``schemas.closeloop.StructureEntry`` dicts: ``twin_core.closeloop.structure.find_structure``
+    (``StructureFinding.to_dict``) on the identification's windows and noise. Without that
+    module installed there is no structure search and the list is empty."""
+    try:
+        from twin_core.closeloop.structure import find_structure
+    except ImportError:
+        return []
+    found = find_structure(
+        data,
+        model,
+        train=ident.train,
+        heldout=ident.heldout,
+        noise=model.config.sensor.noise,
+    )
+    return [f.to_dict() for f in found]
+
+
 def close_loop(
     run_data: RunData,
     declared_model: LineModel,
     options: IdentifyOptions | Mapping[str, Any] | None = None,
     recording: str = "",
+    quality_options: QualityOptions | None = None,
+    design_options: DesignOptions | None = None,
 ) -> CloseLoopResult:
-    """Find where the declared model is wrong on ``run_data``, fix it, and prove the fix.
+    """Find where the declared model is wrong on ``run_data``, fix it, prove the fix, and say
+    what is left (see the module docstring).
 
     ``options``: :class:`IdentifyOptions` or a dict of its fields (candidates, max_effects,
     alpha, min_improvement, split, train_fraction, ...). See ``twin_core.closeloop.identify``.
     """
     if isinstance(options, Mapping):
         options = IdentifyOptions(**options)
-    ident = identify(declared_model, run_data, options)
+    clock = time.process_time
+    timing: dict[str, float] = {}
+    t0 = clock()
+    quality = check_data_quality(run_data, declared_model, quality_options)
+    t1 = clock()
+    ident = identify(declared_model, run_data, options, exclude=quality.exclude)
+    t2 = clock()
+    attribution = attribute(ident)
+    design = None
+    if attribution.product_at_risk:
+        probe, product = attribution.probe_reading, attribution.reading
+        design = design_measurement(
+            run_data,
+            declared_model,
+            probe.effects,
+            product.effects,
+            ident.heldout,
+            labels=["+".join(probe.labels), "+".join(product.labels)],
+            options=design_options,
+        )
+    t3 = clock()
+    aug = declared_model.augmented(ident.final.effects if ident.accepted else [])
+    structure = find_library_structure(run_data, aug, ident)
+    t4 = clock()
     before = _diag(run_data, declared_model, ident, ident.base.pred)
     after = (
         _diag(run_data, declared_model, ident, ident.final.pred, ident.final.effects)
         if ident.accepted
         else before
     )
-    return CloseLoopResult(run_data, declared_model, ident, before, after, recording)
+    t5 = clock()
+    timing = {
+        "data_quality": t1 - t0,
+        "identification": t2 - t1,
+        "fits": t2 - t1 - ident.tests_s,
+        "tests": ident.tests_s,
+        "attribution": t3 - t2,
+        "structure": t4 - t3,
+        "diagnostics": t5 - t4,
+        "total": t5 - t0,
+    }
+    return CloseLoopResult(
+        run_data,
+        declared_model,
+        ident,
+        before,
+        after,
+        recording,
+        quality=quality,
+        attribution=attribution,
+        design=design,
+        structure=structure,
+        timing_s=timing,
+    )
 
 
 @dataclass
 class Finding:
-    """What the online twin gets from a window: status, effects (dict form with parameters and
-    standard errors), the augmented model's effect list and the errors before/after."""
+    """What the online twin gets from a window: status, effects (dict form with parameters,
+    standard errors and equivalents), the model's effect list to adopt (the product-side
+    reading when the product is at risk), the errors before/after, and the rest of the report's
+    honest account (data quality, product reading, discriminating measurement, structure)."""
 
     status: str
     effects: list[dict[str, Any]]
@@ -272,6 +477,12 @@ class Finding:
     errors: dict[str, Any]
     t_start_s: float
     t_end_s: float
+    data_quality: list[dict[str, Any]] = field(default_factory=list)
+    product_at_risk: bool = False
+    product_reading: dict[str, Any] | None = None
+    discriminating_measurement: dict[str, Any] | None = None
+    structure: list[dict[str, Any]] = field(default_factory=list)
+    remaining: str = ""
 
 
 def online_finding(
@@ -281,25 +492,35 @@ def online_finding(
     declared_model: LineModel,
     events: Sequence[Mapping[str, Any]] = (),
     options: IdentifyOptions | Mapping[str, Any] | None = None,
+    stamps: Mapping[str, StreamStamps] | None = None,
 ) -> Finding:
     """Close the loop on one window of arrays (the live twin's periodic check).
 
     ``inputs`` must be on ``t_s``. The model assumes the line at steady state (first flows)
     before ``t_s[0]``: pass a window that starts with some history and exclude it from the
     fit with ``skip_s`` (default here: 150 s, about 4.5 mean residence times of the Table 6.2
-    blender). Returns a :class:`Finding`; ``augmented_effects`` are the model's effects plus
-    the ones found, ready for ``LineModel(config, augmented_effects)``.
+    blender). ``stamps``: the raw message stamps of the window's streams (data quality).
+    Returns a :class:`Finding`; ``augmented_effects`` are the model's effects plus the ones
+    found (or their product-side reading), ready for ``LineModel(config, augmented_effects)``.
     """
     if options is None:
         options = IdentifyOptions(skip_s=150.0)
-    data = RunData(t_s, measured, inputs, [dict(e) for e in events], name="window")
+    data = RunData(
+        t_s, measured, inputs, [dict(e) for e in events], name="window", stamps=dict(stamps or {})
+    )
     res = close_loop(data, declared_model, options)
     rep = res.to_dict()
     return Finding(
         status=res.status,
         effects=rep["effects"],
-        augmented_effects=rep["augmented_model"]["effects"],
+        augmented_effects=[e.to_dict() for e in res.acted_on_model().effects],
         errors=rep["errors"],
         t_start_s=float(t_s[0]),
         t_end_s=float(t_s[-1]),
+        data_quality=rep["data_quality"],
+        product_at_risk=rep["product_at_risk"],
+        product_reading=rep["product_reading"],
+        discriminating_measurement=rep["discriminating_measurement"],
+        structure=rep["structure"],
+        remaining=rep["remaining"],
     )
