@@ -7,8 +7,11 @@ Shell over :class:`twin_core.closeloop.online.OnlineCloseLoop` (fed the decoded 
 mass, disturbances); every ``closeloop.interval_s`` of plant time it checks the declared model plus
 the effects adopted so far on the last ``closeloop.window_s`` (residual -> candidate effects ->
 held-out test, ``twin_core.closeloop``) and publishes a :class:`~schemas.closeloop.ModelFinding`
-on ``twin/<line>/closeloop/finding``: status, the effects claimed with their uncertainties, the
-model's full effect list (what the blender adopts) and RMSE / MAE before and after.
+on ``twin/<line>/closeloop/finding``: status (five values), the data faults flagged, the effects
+claimed with their uncertainties and equivalent explanations, whether the product is at risk
+with its product-side reading and the measurement that would settle it, structure beyond the
+effect library, the model's full effect list (what the blender adopts; the product-side reading
+when the product is at risk: the diverter acts on it) and RMSE / MAE before and after.
 
 The identification of a window (about a second) runs in a worker thread, windows in plant-time
 order, so the bus callbacks never wait for it and the findings do not depend on timing. A
@@ -24,7 +27,7 @@ import threading
 from typing import Any
 
 from schemas import keys
-from schemas.closeloop import EffectFound, EffectSpec, Errors, ModelFinding
+from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import Event, FeederFlow, MeasuredConcentration
 from services.common import OutputLog
@@ -42,16 +45,24 @@ def finding_id(line: str, t_end_s: float) -> str:
 
 def to_message(f: Finding, line: str, seq: int) -> ModelFinding:
     """The wire message of a finding (validated: a finding that does not fit raises)."""
-    return ModelFinding(
-        t=f.t_end_s,
-        seq=seq,
-        finding_id=finding_id(line, f.t_end_s),
-        status=f.status,
-        t_start_s=f.t_start_s,
-        t_end_s=f.t_end_s,
-        effects=[EffectFound.model_validate(e) for e in f.effects],
-        model_effects=[EffectSpec.model_validate(e) for e in f.augmented_effects],
-        errors=Errors.model_validate(f.errors),
+    return ModelFinding.model_validate(
+        {
+            "t": f.t_end_s,
+            "seq": seq,
+            "finding_id": finding_id(line, f.t_end_s),
+            "status": f.status,
+            "t_start_s": f.t_start_s,
+            "t_end_s": f.t_end_s,
+            "data_quality": f.data_quality,
+            "effects": f.effects,
+            "model_effects": f.augmented_effects,
+            "product_at_risk": f.product_at_risk,
+            "product_reading": f.product_reading,
+            "discriminating_measurement": f.discriminating_measurement,
+            "structure": f.structure,
+            "remaining": f.remaining,
+            "errors": f.errors,
+        }
     )
 
 
@@ -123,15 +134,19 @@ class CloseLoopService(Service):
             return
         msg = self.pub.publish(to_message(f, self.spec.name, self.pub.seq))
         self.log_ids.add(fid)
-        if f.status == "explained":
+        if f.status in ("explained", "partly_explained"):
             log.info(
-                "closeloop: window %.0f-%.0f s explained by %s (held-out RMSE %.3f -> %.3f)",
+                "closeloop: window %.0f-%.0f s %s by %s (held-out RMSE %.3f -> %.3f)%s",
                 f.t_start_s,
                 f.t_end_s,
+                f.status.replace("_", " "),
                 ", ".join(e.label for e in msg.effects),
                 msg.errors.before.heldout.rmse,
                 msg.errors.after.heldout.rmse,
+                "; product at risk" if msg.product_at_risk else "",
             )
+        if msg.product_at_risk:
+            self.counters.inc("product_at_risk")
 
     def finish(self) -> None:
         self._jobs.put(None)

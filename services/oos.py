@@ -7,7 +7,8 @@ outlet, merged in plant time; see there). Subscribes the feeder flows
 ``twin/<line>/blender/outlet/predicted``, the plant's events ``twin/<line>/*/*/event`` (tracer
 pulses, the replay's end of stream) and, as the blender does (``blender.adopt_rtd_estimates``,
 ``blender.adopt_findings``), RTD estimates and closeloop findings: the diverter follows the
-model the blender adopted. Publishes :class:`~schemas.messages.OosAlert` on
+model the blender adopted, and a finding with the product at risk whose product-side reading
+leaves the specification diverts its window (``OosCore.finding``). Publishes :class:`~schemas.messages.OosAlert` on
 ``twin/<line>/oos/alert`` (one per episode, when its window is complete) and
 :class:`~schemas.messages.DivertCommand` on ``twin/<line>/divert/command`` (``<alert>.open`` as
 soon as an episode is known, early for feeder disturbances; ``<alert>.final`` with the final
@@ -184,10 +185,13 @@ class OosService(Service):
             core.adopt_estimate(msg.model, msg.params)
             self.counters.inc("rtd_adopted")
         elif isinstance(msg, ModelFinding):
-            new = [e.model_dump() for e in msg.model_effects]
-            if not core.kernel.same_effects(new):
-                core.adopt_effects(new)
+            adopted = not core.kernel.same_effects([e.model_dump() for e in msg.model_effects])
+            outs = core.finding(msg.model_dump())
+            if adopted:
                 self.counters.inc("findings_adopted")
+            if msg.product_at_risk:
+                self.counters.inc("product_at_risk")
+            return outs
         return None
 
     def emit(self, outs: list[DiverterOutput]) -> None:

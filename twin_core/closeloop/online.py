@@ -6,10 +6,11 @@ message-to-array adapter, also used offline by ``twin close-loop``). Every ``int
 plant time, once ``min_window_s`` of data is in, the current model (the declared one plus the
 effects adopted so far) is checked on the last ``window_s`` with
 :func:`twin_core.closeloop.report.online_finding` (residual -> candidate effects -> held-out
-test; Akaike/Schwarz selection and the held-out likelihood-ratio test of
-``twin_core.closeloop.identify``). An ``explained`` finding is adopted: the model used for the
-next windows is the augmented one, so an effect is found once and later windows check that the
-fix holds (``consistent``).
+test; Schwarz selection and the held-out likelihood-ratio test of
+``twin_core.closeloop.identify``; the data-quality check first, on the window's arrays and its
+streams' raw message stamps). An ``explained`` finding is adopted: the model used for the next
+windows is the augmented one (its product-side reading when the product is at risk), so an
+effect is found once and later windows check that the fix holds (``consistent``).
 
 Windows are closed in plant time, when every stream has passed their end, so the findings do not
 depend on the order or the speed at which the samples arrive.
@@ -19,12 +20,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from schemas.line import LineConfig
+from twin_core.closeloop.data import StreamStamps
 from twin_core.closeloop.record import LineRecord
 from twin_core.closeloop.report import Finding, online_finding
 from twin_core.plant.model import LineInputs, LineModel
@@ -48,6 +50,7 @@ class WindowData:
     inputs: LineInputs
     events: list[dict[str, Any]]
     skip_s: float
+    stamps: dict[str, StreamStamps] = field(default_factory=dict)
 
 
 class OnlineCloseLoop:
@@ -166,16 +169,21 @@ class OnlineCloseLoop:
         # the run's first window starts with the line at steady state; a later one starts
         # with the response to earlier inputs still in the blender: fit after skip_s
         first = self._t0 is not None and self._tick(w.t_start_s) == self._t0
-        data = WindowData(w, t, y, inputs, events, 0.0 if first else self.skip_s)
+        stamps = self.record.stamps(w.t_start_s, w.t_end_s)
+        data = WindowData(w, t, y, inputs, events, 0.0 if first else self.skip_s, stamps)
         self._prune(self._tick(w.t_end_s))
         return data
 
     def evaluate(self, data: WindowData) -> Finding:
-        """Check the current model on a window; adopt the effects of an explained finding."""
+        """Check the current model on a window; adopt the model of an explained finding (its
+        product-side reading when the product is at risk). A partly explained finding is
+        reported, not adopted: something the model cannot say is still there."""
         options: dict[str, Any] = {"skip_s": data.skip_s, "max_effects": self.max_effects}
         if self.candidates:
             options["candidates"] = list(self.candidates)
-        f = online_finding(data.t_s, data.measured, data.inputs, self.model_, data.events, options)
+        f = online_finding(
+            data.t_s, data.measured, data.inputs, self.model_, data.events, options, data.stamps
+        )
         if f.status == "explained":
             self.model_ = LineModel(self.config, f.augmented_effects)
         self.findings_.append(f)

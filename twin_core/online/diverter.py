@@ -13,6 +13,13 @@ Three views of the outlet concentration are combined, all in plant time:
    window (to within one tick) is the same event (it confirms it, counted, no new alert). Otherwise it is an alert of
    its own: ``divert`` from its start when it opens, alert and final window when it closes.
 
+4. **Close-loop findings with the product at risk** (late, from the model check): when the data
+   cannot tell a probe-side from a product-side explanation of a window, the twin acts on the
+   product-side reading (``schemas.closeloop.ModelFinding.product_reading``): if that reading's
+   outlet leaves the specification over the finding's window, the window is diverted (alert and
+   ``divert`` at once, source ``closeloop``): the NIR's in-spec reading may be the probe's
+   error, not the product's quality.
+
 Outputs carry stable ids derived from the data (``<line>.<component>.<source>-<start ms>``, with
 ``.open``/``.final`` for commands), so replaying the same data gives the same outputs and a
 consumer (or a restarted diverter) can drop what it has already seen. Inputs must come in plant
@@ -28,7 +35,7 @@ from typing import Literal
 
 import numpy as np
 
-from twin_core.online.alerts import EpisodeEvent, HysteresisTracker
+from twin_core.online.alerts import EpisodeEvent, HysteresisTracker, episode_id
 from twin_core.online.funnel import FlagEvent, FunnelFlagger
 
 __all__ = ["DiverterOutput", "OosDecider"]
@@ -40,7 +47,8 @@ class DiverterOutput:
 
     ``kind``: ``alert`` (complete episode) or ``divert`` (window to send to waste).
     ``id``: the alert id (alerts) or command id (divert); ``alert_id``: the alert it belongs to.
-    ``source``: ``feed`` (traced feeder disturbance), ``predicted`` or ``measured``.
+    ``source``: ``feed`` (traced feeder disturbance), ``predicted``, ``measured`` or
+    ``closeloop`` (a finding whose product-side reading is out of specification).
     """
 
     kind: Literal["alert", "divert"]
@@ -143,6 +151,53 @@ class OosDecider:
     def measured(self, t: float, c: float) -> list[DiverterOutput]:
         """One measured outlet concentration (% w/w)."""
         return self._outlet("measured", t, c)
+
+    def product_risk(
+        self,
+        t: float,
+        finding_id: str,
+        t_start: float,
+        t_end: float,
+        outlet_min: float,
+        outlet_max: float,
+    ) -> list[DiverterOutput]:
+        """A close-loop finding with the product at risk (module docstring, item 4): its
+        product-side outlet range over [t_start, t_end]; the window is diverted when the range
+        leaves the specification (alert and ``divert``, once per finding window)."""
+        low, high = outlet_min < self.lower, outlet_max > self.upper
+        if not (low or high):
+            return []
+        aid = episode_id(f"{self.line}.{self.component}.closeloop", t_start)
+        if aid in self._own:
+            return []
+        self._own[aid] = True
+        peak = (
+            outlet_min
+            if low and (self.target - outlet_min >= outlet_max - self.target or not high)
+            else outlet_max
+        )
+        cause = (
+            f"close-loop finding {finding_id}: the data cannot tell a probe-side from a "
+            f"product-side explanation; the product-side reading puts the {self.component} "
+            f"outlet at {outlet_min:.3f}..{outlet_max:.3f} % w/w, outside "
+            f"[{self.lower}, {self.upper}]"
+        )
+        common = dict(
+            t=t,
+            alert_id=aid,
+            source="closeloop",
+            component=self.component,
+            t_start=t_start,
+            t_end=t_end,
+            peak_deviation=peak - self.target,
+            limit=self.limit,
+            cause=cause,
+        )
+        self._windows.append([t_start, t_end])
+        return [
+            DiverterOutput(kind="alert", id=aid, **common),
+            DiverterOutput(kind="divert", id=f"{aid}.final", **common),
+        ]
 
     def flush(self) -> list[DiverterOutput]:
         """End of the streams: close what is open."""

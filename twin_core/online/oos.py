@@ -142,6 +142,32 @@ class OosCore:
         self.kernel.adopt_estimate(model, params)
         self._refresh_funnel()
 
+    def finding(self, finding: Mapping[str, Any]) -> list[DiverterOutput]:
+        """A close-loop finding (``schemas.closeloop.ModelFinding`` in dict form): its model's
+        effects are followed like the blender's (:meth:`adopt_effects`), and when the product
+        is at risk the product-side reading's outlet is checked against the specification of
+        the measured component over the finding's window
+        (``OosDecider.product_risk``)."""
+        out: list[DiverterOutput] = []
+        new = [dict(e) for e in finding.get("model_effects", [])]
+        if not self.kernel.same_effects(new):
+            self.adopt_effects(new)
+        reading = finding.get("product_reading")
+        if not finding.get("product_at_risk") or not reading:
+            return out
+        comp = self.spec.sensor.component
+        d = self.deciders.get(comp)
+        if d is None:
+            return out
+        return d.product_risk(
+            float(finding["t"]),
+            str(finding["finding_id"]),
+            float(reading["t_start_s"]),
+            float(reading["t_end_s"]),
+            float(reading["outlet_min_pct_w_w"]),
+            float(reading["outlet_max_pct_w_w"]),
+        )
+
     def adopt_effects(self, effects: Sequence[Effect | Mapping]) -> list[Effect]:
         """The blender adopted a finding's effects: follow its E(t); returns the effects that
         could not be adopted."""
