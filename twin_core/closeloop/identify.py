@@ -45,7 +45,8 @@ Procedure (forward stepwise, at most ``max_effects`` effects):
    tell apart from it (e.g. a probe gain and API lost in the blender); they are listed with
    their scores, across stages (probe and product side).
 6. **Status** (the honest one): with an effect claimed, ``explained`` only if the held-out
-   innovations of the augmented model are consistent with the noise
+   innovations of the augmented model (under the noise at its own level: sigma(t) from its
+   prediction) are consistent with the noise
    (``twin_core.closeloop.diagnostics.innovation_tests``: scale inside its chi-square band,
    no level or trend, Ljung-Box and cumulative-periodogram whiteness, Bonferroni at
    ``noise_alpha``), else ``partly_explained``; without a claim ``consistent`` when the
@@ -649,8 +650,8 @@ def identify(
     accepted, steps, current = _forward_search(search, base, cands)
     t0 = time.process_time()
     tests_on = held if accepted else (train | held)
-    regress = _level_and_trend(ev, tests_on)
-    noise_tests = innovation_tests(current.innov[tests_on], regress, alpha=opt.noise_alpha)
+    e, regress = _status_innovations(ev, current.pred, tests_on)
+    noise_tests = innovation_tests(e, regress, alpha=opt.noise_alpha)
     tests_s = search.tests_s + time.process_time() - t0
     if accepted:
         status = "explained" if noise_tests["consistent"] else "partly_explained"
@@ -676,17 +677,22 @@ def identify(
     )
 
 
-def _level_and_trend(ev: _Evaluator, mask: np.ndarray) -> np.ndarray:
-    """Innovations of a unit level and of a linear trend (per hour, centred on the tested
-    samples) in the residual, on the samples ``mask``: the regressors of the level and trend
-    test under the coloured noise."""
-    t = ev.t
-    tc = (t - float(np.mean(t[mask]))) / 3600.0
+def _status_innovations(
+    ev: _Evaluator, pred: np.ndarray, mask: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Innovations of the model ``pred`` on the samples ``mask`` under the noise at *its*
+    level (sigma(t) from ``pred``: an effect that moves the reading, a drift or a gain, moves
+    the proportional part of the noise with it), and the innovations of a unit level and of a
+    linear trend (per hour, centred on the tested samples): the status tests' inputs."""
+    sigma = np.maximum(noise_sd(pred, ev.sensor.noise), 1e-6)
+    whiten = NoiseWhitener(sigma, ev.sensor.noise)
+    z = np.where(ev.usable, (ev.y - pred) / sigma, 0.0)
+    tc = (ev.t - float(np.mean(ev.t[mask]))) / 3600.0
     cols = [
-        ev.whiten(np.where(ev.usable, 1.0 / ev.sigma, 0.0)),
-        ev.whiten(np.where(ev.usable, tc / ev.sigma, 0.0)),
+        whiten(np.where(ev.usable, 1.0 / sigma, 0.0)),
+        whiten(np.where(ev.usable, tc / sigma, 0.0)),
     ]
-    return np.column_stack(cols)[mask]
+    return whiten(z)[mask], np.column_stack(cols)[mask]
 
 
 def refit(ident: Identification, effects: Sequence[Effect], labels: Sequence[str]) -> FitResult:
