@@ -147,7 +147,7 @@ def _apply_feeder_effects(inputs: LineInputs, feeder: str, effects: Sequence[Eff
     return q
 
 
-def _apply_unit_effects(
+def apply_unit_effects(
     t: np.ndarray, component: str, q: np.ndarray, q0: float, effects: Sequence[Effect]
 ) -> tuple[np.ndarray, float]:
     """The component's mass flow through the unit-stage effects acting on it (``target``: the
@@ -229,7 +229,7 @@ class OutletModel:
         for c in self.components:
             f = np.asarray(feed.get(c, np.zeros(self.n)), dtype=float)
             q = f + self.tracer[c] if c in self.tracer else f
-            out[c] = _apply_unit_effects(self.t, c, q, float(f[0]), effects)
+            out[c] = apply_unit_effects(self.t, c, q, float(f[0]), effects)
         if len(self._inflows) > 64:
             self._inflows.clear()
         self._inflows[key] = out

@@ -37,7 +37,13 @@ from scipy.signal import lfilter
 from schemas.line import LineConfig
 from twin_core.plant.blender_fv import FiniteVolumeBlender, FVResult, WallFilm
 from twin_core.plant.effects import Effect, ParamSpec
-from twin_core.plant.model import LineInputs, outlet_concentration, pulse_bin_flow, sensor_signal
+from twin_core.plant.model import (
+    LineInputs,
+    apply_unit_effects,
+    outlet_concentration,
+    pulse_bin_flow,
+    sensor_signal,
+)
 
 __all__ = [
     "OPEN_WORLD",
@@ -600,7 +606,9 @@ def open_world_line(
     (the independent code path; in-list rtd effects, defined on E(t), are not available there);
     ``"convolution"``: the declared model's convolution (``twin_core.plant.model``; open-world
     blender effects are not available there). Tracer pulses enter as in the declared model
-    (``model.pulse_bin_flow``); the probe sees the open-world sensor effects, then the in-list
+    (``model.pulse_bin_flow``); in-list unit-stage effects change what enters the vessel
+    (``model.apply_unit_effects``; the finite-volume vessel starts at steady state with the
+    first of those flows); the probe sees the open-world sensor effects, then the in-list
     sensor effects and the baseline (``model.sensor_signal``).
     """
     if blender not in ("fv", "convolution"):
@@ -624,8 +632,8 @@ def open_world_line(
             components=components,
             tracers=list(config.tracers),
         )
-        rtd_only = [e for e in effects if e.stage == "rtd"]
-        outlet = outlet_concentration(delivered, config.blender, rtd_only)
+        vessel = [e for e in effects if e.stage in ("rtd", "unit")]
+        outlet = outlet_concentration(delivered, config.blender, vessel)
     else:
         bad = [e.name for e in effects if e.stage == "rtd"]
         if bad:
@@ -641,6 +649,8 @@ def open_world_line(
             rate = p.mass_kg / p.duration_s
             pulse = pulse_bin_flow(t, dt, p.t_s, p.t_s + p.duration_s, rate)
             inlet[p.component] = inlet.get(p.component, np.zeros_like(t)) + pulse
+        for c in inlet:
+            inlet[c], _ = apply_unit_effects(t, c, inlet[c], float(inlet[c][0]), effects)
         fv_run = fv.simulate(inlet, velocity=terms.velocity, films=terms.films)
         outlet = fv_run.outlet_pct_w_w
     c = outlet.get(sensor.component, np.zeros_like(t))

@@ -279,9 +279,7 @@ def simulate_line(
                 refilling={name: rec.refilling},
             )
             feeder_effs = [e for e in effs if e.stage == "feeder"]
-            rec.delivered_kg_h = (
-                inlet_component_flows(single, feeder_effs)[rec.component] * 3600.0
-            )
+            rec.delivered_kg_h = inlet_component_flows(single, feeder_effs)[rec.component] * 3600.0
         outlet = outlet_concentration(run_inputs, config.blender, effs)
         c = outlet.get(sensor.component, np.zeros(n))
         sig = sensor_signal(t, c, effs, sensor.noise.baseline_offset)
