@@ -1,7 +1,8 @@
 """Structure beyond the library (``twin_core.closeloop.structure``).
 
-Validated against: the declared noise's quadratic form (itself checked against the simulator's
-noise by Monte Carlo in test_closeloop) and Monte Carlo of the sandwich covariance; the F(2, 2K-2)
+Validated against: the dense covariance the innovations whiten (the whitener itself is checked
+against the simulator's noise by Monte Carlo in test_closeloop) and Monte Carlo of the sandwich
+covariance; the F(2, 2K-2)
 null law of Thomson's harmonic F-test; the declared model's own prediction (the kernel
 linearisation and its identity X e = c0); the analytic mean residence time of a two-zone
 exchange blender (matrix exponential vs the scipy ODE integration); and validation records made
@@ -17,14 +18,15 @@ import pytest
 from scipy import signal, stats
 from scipy.integrate import solve_ivp
 
-from schemas.closeloop import StructureEntry
+from schemas.closeloop import CloseLoopReport, StructureEntry
 from schemas.line import NIRNoise
 from twin_core.closeloop import make_split
 from twin_core.closeloop import structure_cases as sc
-from twin_core.closeloop.identify import NoiseCovariance
+from twin_core.closeloop.noise import NoiseWhitener, pink_autocorrelation
 from twin_core.closeloop.plots import structure_figures
+from twin_core.closeloop.report import close_loop
 from twin_core.closeloop.structure import StructureOptions, find_structure
-from twin_core.closeloop.structure_base import noise_gram, residual_context, weighted_fit
+from twin_core.closeloop.structure_base import residual_context, weighted_fit
 from twin_core.closeloop.structure_kernel import (
     hat_basis,
     hat_convolutions,
@@ -32,7 +34,7 @@ from twin_core.closeloop.structure_kernel import (
     kernel_length_s,
 )
 from twin_core.closeloop.structure_periodic import coherence_at, multitaper_ftest
-from twin_core.plant.nir import add_nir_noise
+from twin_core.plant.nir import add_nir_noise, noise_sd
 from twin_core.rtd.profiles import moments
 
 DURATION = 3600.0
@@ -65,17 +67,26 @@ def _first_of_kind(case, kind):
     return of_kind[0], found, sp
 
 
-def test_noise_gram_is_the_bilinear_form_of_the_declared_covariance():
+def test_gram_is_the_covariance_the_innovations_whiten():
+    """``NoiseWhitener.gram`` (the sandwich covariances' A'CA) against the dense covariance
+    S R S built from the pink autocorrelation (Toeplitz), and against the whitener itself: with
+    a predictor as long as the record the innovations are exact, W S^-1 C S^-1 W' = I."""
+    from scipy.linalg import toeplitz
+
     rng = np.random.default_rng(0)
-    pred = 10 + rng.standard_normal(500)
-    cov = NoiseCovariance(pred, NIRNoise())
-    a = rng.standard_normal((500, 3))
-    g = noise_gram(cov, a)
-    for i in range(3):
-        assert g[i, i] == pytest.approx(cov.quad(a[:, i]), rel=1e-10)
-    # polarisation identity for an off-diagonal entry
-    off = 0.5 * (cov.quad(a[:, 0] + a[:, 1]) - cov.quad(a[:, 0]) - cov.quad(a[:, 1]))
-    assert g[0, 1] == pytest.approx(off, rel=1e-10)
+    n = 300
+    pred = 10 + rng.standard_normal(n)
+    noise = NIRNoise(outlier_prob=0.0, baseline_offset=0.0)
+    sigma = noise_sd(pred, noise)
+    whiten = NoiseWhitener(sigma, noise)
+    c = whiten.gram(np.eye(n))
+    r = (1 - whiten.share) * np.eye(n) + whiten.share * toeplitz(pink_autocorrelation(n, n - 1))
+    assert np.allclose(c, sigma[:, None] * r * sigma[None, :], rtol=0, atol=1e-12)
+    w = np.column_stack([whiten(col) for col in np.eye(n)])
+    m = w @ (c / np.outer(sigma, sigma)) @ w.T
+    assert np.allclose(m, np.eye(n), atol=1e-9)
+    a = rng.standard_normal((n, 3))
+    assert np.allclose(whiten.gram(a), a.T @ c @ a, atol=1e-12)
 
 
 def test_sandwich_covariance_matches_monte_carlo_of_the_simulated_noise(const_run):
@@ -304,6 +315,24 @@ def test_two_zone_blender_gives_a_kernel_correction_usable_on_another_record(con
     StructureEntry.model_validate(f.to_dict())
     figs = structure_figures(found)
     assert len(figs) == len(found) and all(k.endswith(".png") for k in figs)
+
+
+def test_the_report_lists_the_structure_the_library_left(const_run):
+    """``close_loop`` fills the report's ``structure`` with ``find_structure`` on what the
+    library left: an API pulsation at the screw's rotation (no candidate is periodic) is
+    reported as a periodic entry at the true frequency (inside its 95 % interval), valid as
+    ``CloseLoopReport``; the effect-free record of the same line gives no entry."""
+    pulsed = sc.pulsation_case(const_run, 6, 0.2)
+    rep = close_loop(pulsed.data, pulsed.model).to_dict()
+    CloseLoopReport.model_validate(rep)
+    periodic = [s for s in rep["structure"] if s["kind"] == "periodic"]
+    assert periodic, rep["structure"]
+    _, lo, hi = periodic[0]["estimates"]["frequency_hz"]
+    assert lo <= pulsed.truth["frequency_hz"] <= hi
+    assert periodic[0]["summary"] in rep["remaining"]
+    clean = sc.none_case(const_run, 0)
+    rep0 = close_loop(clean.data, clean.model).to_dict()
+    assert rep0["structure"] == []
 
 
 def test_bad_input_is_named():

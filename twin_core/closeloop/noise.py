@@ -218,13 +218,18 @@ class NoiseWhitener:
         s = np.asarray(sigma, dtype=float)
         n = s.size
         self.n = n
+        self.sigma = s
+        self.n_record = int(n_record or n)
+        if self.n_record < n:
+            raise ValueError(f"n_record must be >= {n} (the record), got {n_record!r}")
         s2 = float(np.median(s**2))
         share = noise.pink_sd**2 / s2 if s2 > 0 else 0.0
+        self.share = float(min(share, 1.0))
         self.order = int(min(order, n - 1)) if share > 0 else 0
         if self.order == 0:
             self._fir = None
             return
-        rho = share * pink_autocorrelation(n_record or n, self.order)
+        rho = share * pink_autocorrelation(self.n_record, self.order)
         rho[0] = 1.0
         phi, v = levinson_durbin(rho, self.order)
         p = self.order
@@ -256,3 +261,32 @@ class NoiseWhitener:
             p = self.order
             e[:p] = self._head @ z[:p]
         return e
+
+    def gram(self, a: np.ndarray) -> np.ndarray:
+        """A'CA for the columns of ``a`` (n x k), C = S R S the covariance these innovations
+        whiten: S = diag(sigma), R = (1 - s) I + s C_pink with s the 1/f share of the variance
+        and C_pink the correlation of :func:`pink_autocorrelation` (circulant over
+        ``n_record``, so A'C_pink A = Re(F^H diag(lambda) F) / g(0), F = rfft(A) on
+        ``n_record`` points, lambda the 1/f power; Wiener-Khinchin). The variance of linear
+        estimates A'r under the noise (sandwich covariances; White 1980 with C coloured)."""
+        a = np.asarray(a, dtype=float)
+        if a.ndim == 1:
+            a = a[:, None]
+        if a.shape[0] != self.n:
+            raise ValueError(f"a must have {self.n} rows, got {a.shape[0]}")
+        sa = a * self.sigma[:, None]
+        g = (1.0 - self.share) * (sa.T @ sa)
+        if self.share > 0:
+            big_n = self.n_record
+            f = np.fft.rfftfreq(big_n)
+            lam = np.zeros_like(f)
+            lam[1:] = 2.0 / f[1:]
+            mult = np.full(f.size, 2.0)
+            mult[0] = 1.0
+            if big_n % 2 == 0:
+                mult[-1] = 1.0
+            g0 = float(np.sum(mult * lam)) / big_n
+            w = mult * lam / (big_n * g0)
+            fa = np.fft.rfft(sa, big_n, axis=0)
+            g += self.share * np.real((fa.conj() * w[:, None]).T @ fa)
+        return 0.5 * (g + g.T)

@@ -9,16 +9,19 @@ the declared coloured NIR noise (white + proportional + 1/f, ``twin_core.plant.n
 
 1. a search statistic on the training window, with its null distribution under that noise
    (Bonferroni over what the search tried);
-2. the held-out test of the library (``twin_core.closeloop.identify.heldout_lr_test``): with
-   e0 the held-out residual and delta the change of prediction the finding makes there (its
-   numbers from the training window only), T = delta'e0 / sqrt(delta'C delta) is N(0, 1)
-   without structure, C the declared noise covariance; one-sided p = 1 - Phi(T);
-3. a held-out weighted MSE drop of at least ``min_improvement`` (a finding must make the
+2. the held-out test of the library (``twin_core.closeloop.identify.heldout_lr_test``) on
+   innovations (``twin_core.closeloop.noise.NoiseWhitener``, as the library's tests): with e0
+   the held-out innovations of the residual and d those of the change of prediction the
+   finding makes (its numbers from the training window only), T = d'e0 / |d| is N(0, 1)
+   without structure (causal whitening: e0 on the held-out window is independent of the
+   training data); one-sided p = 1 - Phi(T);
+3. a held-out innovation MSE drop of at least ``min_improvement`` (a finding must make the
    prediction better, not only point in the right direction).
 
 Standard errors of linear estimates use the sandwich covariance under the declared noise,
-Var(A'r) = A'CA (:func:`noise_gram`): the 1/f part correlates the windows of a record, so
-estimates of different windows are not independent and their spread is not the white-noise one.
+Var(A'r) = A'CA (``NoiseWhitener.gram``: C the covariance the innovations whiten): the 1/f
+part correlates the windows of a record, so estimates of different windows are not independent
+and their spread is not the white-noise one.
 """
 
 from __future__ import annotations
@@ -32,7 +35,8 @@ import numpy as np
 
 from schemas.line import NIRNoise
 from twin_core.closeloop.data import RunData
-from twin_core.closeloop.identify import NoiseCovariance, heldout_lr_test
+from twin_core.closeloop.identify import heldout_lr_test
+from twin_core.closeloop.noise import NoiseWhitener
 from twin_core.plant.model import LineModel
 from twin_core.plant.nir import noise_sd
 from twin_core.rtd.outliers import hampel
@@ -51,7 +55,7 @@ class StructureOptions:
     ``kinds``: the searches to run. ``alpha``: family-wise level of the held-out tests (split
     equally over the searches, and over the sinusoids of the periodic search);
     ``search_alpha``: level of the training-window search statistic (Bonferroni over what a
-    search tries); ``min_improvement``: held-out weighted MSE drop a finding needs.
+    search tries); ``min_improvement``: held-out innovation MSE drop a finding needs.
     Parameter dependence: ``groups`` windows per covariate, ``min_rel_spread`` the relative
     spread (5-95 %) a flow or screw speed needs on the training window to be a covariate,
     ``min_time_span_s`` the training span for a time dependence, ``max_laws`` the strongest
@@ -177,8 +181,8 @@ class ResidualContext:
 
     ``y``: the measurement with Hampel outliers replaced (0 where missing); ``train`` /
     ``held``: the windows restricted to finite samples; ``pred``: the model's prediction;
-    ``sigma``: the noise standard deviation per sample (weights 1 / sigma^2); ``cov``: the
-    noise covariance quadratic form.
+    ``sigma``: the noise standard deviation per sample (weights 1 / sigma^2); ``whiten``: the
+    innovations of r / sigma under the noise, and its covariance (``NoiseWhitener.gram``).
     """
 
     data: RunData
@@ -190,7 +194,7 @@ class ResidualContext:
     held: np.ndarray
     pred: np.ndarray
     sigma: np.ndarray
-    cov: NoiseCovariance
+    whiten: NoiseWhitener
 
     @property
     def t(self) -> np.ndarray:
@@ -235,22 +239,8 @@ def residual_context(
         )
     pred = model.predict(data.inputs)
     sigma = np.maximum(noise_sd(pred, nz), 1e-6)
-    return ResidualContext(
-        data, model, nz, y, finite, tr, ho, pred, sigma, NoiseCovariance(pred, nz)
-    )
-
-
-def noise_gram(cov: NoiseCovariance, a: np.ndarray) -> np.ndarray:
-    """A'CA for the columns of ``a`` (n x k) under the declared noise covariance C:
-    A' diag(d) A + pink_var Re(F^H diag(a2) F), F = rfft(A) (the bilinear form of
-    ``NoiseCovariance.quad``, which it equals on the diagonal)."""
-    a = np.asarray(a, dtype=float)
-    if a.ndim == 1:
-        a = a[:, None]
-    g = (a * cov.diag[:, None]).T @ a
-    f = np.fft.rfft(a, axis=0)
-    g += cov.pink_var * np.real((f.conj() * cov.a2[:, None]).T @ f)
-    return 0.5 * (g + g.T)
+    whiten = NoiseWhitener(sigma, nz)
+    return ResidualContext(data, model, nz, y, finite, tr, ho, pred, sigma, whiten)
 
 
 def weighted_fit(
@@ -266,7 +256,7 @@ def weighted_fit(
     m = wx.T @ x
     minv = np.linalg.pinv(m)
     beta = minv @ (wx.T @ np.where(mask, target, 0.0))
-    cov = minv @ noise_gram(ctx.cov, wx) @ minv
+    cov = minv @ ctx.whiten.gram(wx) @ minv
     return beta, 0.5 * (cov + cov.T)
 
 
@@ -294,16 +284,18 @@ def heldout_evidence(
     min_improvement: float,
     e0: np.ndarray | None = None,
 ) -> HeldoutEvidence:
-    """Held-out LR test (``heldout_lr_test``) and weighted MSE drop of the correction
+    """Held-out LR test (``heldout_lr_test``) and innovation MSE drop of the correction
     ``delta`` on the residual ``e0`` (default: the context's residual), passed when
-    p < ``level`` and the drop >= ``min_improvement``."""
+    p < ``level`` and the drop >= ``min_improvement``. Both are whitened over the whole record
+    (samples left out enter as 0) and read on the held-out window."""
     h = ctx.held
-    e = np.where(h, ctx.resid if e0 is None else e0, 0.0)
-    d = np.where(h, delta, 0.0)
-    z, p = heldout_lr_test(e, d, ctx.cov)
-    w = ctx.weight[h]
-    mse0 = float(np.mean(w * e[h] ** 2))
-    mse1 = float(np.mean(w * (e[h] - d[h]) ** 2))
+    r = ctx.resid if e0 is None else e0
+    inn0 = ctx.whiten(np.where(ctx.finite, r / ctx.sigma, 0.0))[h]
+    d = ctx.whiten(np.where(ctx.finite, delta / ctx.sigma, 0.0))[h]
+    inn1 = inn0 - d
+    z, p = heldout_lr_test(inn0, inn1)
+    mse0 = float(np.mean(inn0**2))
+    mse1 = float(np.mean(inn1**2))
     rel = 1.0 - mse1 / mse0 if mse0 > 0 else 0.0
     return HeldoutEvidence(float(z), float(p), rel, bool(p < level and rel >= min_improvement))
 

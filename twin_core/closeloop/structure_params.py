@@ -12,7 +12,7 @@ by forward differences): in window g the level shift of parameter p is
     delta_g = sum_g w J_p r / sum_g w J_p^2,   w = 1 / sigma^2,
 
 a linear estimate delta = A'r whose covariance under the declared coloured noise is
-V = A'CA (``noise_gram``: the 1/f part correlates the windows). The dependence on x is the
+V = A'CA (``NoiseWhitener.gram``: the 1/f part correlates the windows). The dependence on x is the
 generalised least-squares line through the window estimates at their information-weighted
 covariate means, delta_g = a + b (x_g - x_ref): slope b with its standard error
 sqrt([(Z'V^-1 Z)^-1]_bb); "constant" is tested by z = b / se(b) (Bonferroni over parameters x
@@ -43,7 +43,6 @@ from twin_core.closeloop.structure_base import (
     StructureOptions,
     heldout_evidence,
     interval,
-    noise_gram,
 )
 from twin_core.plant.model import LineModel, rtd_kernel
 from twin_core.rtd.convolution import convolve
@@ -220,7 +219,7 @@ def fit_windows(
         return None
     a_cols = np.column_stack([np.where(g == k, w * jac, 0.0) / s for k, s in zip(ids, info)])
     levels = a_cols.T @ r
-    v = noise_gram(ctx.cov, a_cols)
+    v = ctx.whiten.gram(a_cols)
     x_mean = np.array([float(np.sum((w * jac**2 * x)[g == k])) / s for k, s in zip(ids, info)])
     x_ref = float(np.sum(info * x_mean) / np.sum(info))
     z = np.column_stack([np.ones(len(ids)), x_mean - x_ref])
