@@ -8,7 +8,7 @@ Written by ``twin_core.closeloop.CloseLoopResult.to_dict()`` and validated with
 (``twin/<line>/closeloop/finding``, published by the closeloop service, adopted by the blender,
 acted on by the diverter).
 
-Report version 2 (contract 1.2): ``status`` has five values; ``data_quality``,
+Report version 2 (contract 1.3): ``status`` has five values; ``data_quality``,
 ``product_at_risk``, ``product_reading``, ``discriminating_measurement``, ``structure``,
 ``remaining`` and ``noise_tests`` are new; every effect lists its ``equivalents`` and ``side``;
 ``decision`` has ``noise_alpha`` and ``ambiguity_bic`` instead of ``unexplained_nmse``.
