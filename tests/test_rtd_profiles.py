@@ -47,9 +47,11 @@ def test_load_csv_units(tmp_path):
     with pytest.raises(ValueError, match="time_unit given as 's' but the header declares 'min'"):
         load_csv(f, time_unit="s")
     h = tmp_path / "cols.csv"
-    h.write_text("a [s],b [x]\n1,2\n")
-    with pytest.raises(ValueError, match="header must have columns"):
+    h.write_text("a [s],b [x],c [%]\n1,2,3\n")
+    with pytest.raises(ValueError, match="concentration column is ambiguous among \\['b', 'c'\\]"):
         load_csv(h)
+    with pytest.raises(ValueError, match="concentration unit must be one of .* got 'x'"):
+        load_csv(h, conc_col="b")
 
 
 @pytest.mark.parametrize(

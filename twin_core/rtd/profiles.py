@@ -18,7 +18,18 @@ from numpy.typing import ArrayLike, NDArray
 
 from twin_core.rtd.convolution import cumulative
 
-__all__ = ["Profile", "Moments", "TIME_UNITS", "from_arrays", "load_csv", "e_curve", "moments"]
+__all__ = [
+    "Profile",
+    "Moments",
+    "TIME_UNITS",
+    "CONC_UNITS",
+    "canonical_time_unit",
+    "canonical_conc_unit",
+    "from_arrays",
+    "load_csv",
+    "e_curve",
+    "moments",
+]
 
 #: factor to seconds
 TIME_UNITS: dict[str, float] = {"s": 1.0, "ms": 1e-3, "min": 60.0, "h": 3600.0}
@@ -119,60 +130,200 @@ def from_arrays(
     )
 
 
-_HDR = re.compile(r"^\s*([A-Za-z_][\w ]*?)\s*(?:\[(.*)\]|\((.*)\))?\s*$")
+_HDR = re.compile(r"^\s*([A-Za-z_][^\[\]()]*?)\s*(?:\[(.*)\]|\((.*)\))?\s*$")
+
+#: accepted time units (spellings -> canonical)
+TIME_SPELLINGS: dict[str, str] = {
+    "s": "s",
+    "sec": "s",
+    "secs": "s",
+    "second": "s",
+    "seconds": "s",
+    "ms": "ms",
+    "min": "min",
+    "mins": "min",
+    "minute": "min",
+    "minutes": "min",
+    "h": "h",
+    "hr": "h",
+    "hrs": "h",
+    "hour": "h",
+    "hours": "h",
+}
+#: accepted concentration units (canonical) -> factor to % w/w
+CONC_UNITS: dict[str, float] = {"% w/w": 1.0, "%": 1.0, "mg/g": 0.1, "fraction": 100.0}
+_CONC_SPELLINGS: dict[str, str] = {
+    "%w/w": "% w/w",
+    "w/w%": "% w/w",
+    "%(w/w)": "% w/w",
+    "wt%": "% w/w",
+    "%wt": "% w/w",
+    "wt.%": "% w/w",
+    "%": "%",
+    "percent": "%",
+    "mg/g": "mg/g",
+    "fraction": "fraction",
+    "g/g": "fraction",
+    "w/w": "fraction",
+}
+
+
+def canonical_time_unit(unit: str) -> str:
+    """Canonical time unit (s, ms, min, h) of a spelling; unknown units are refused."""
+    key = unit.strip().lower()
+    if key not in TIME_SPELLINGS:
+        raise ValueError(f"time unit must be one of s, ms, min, h, got {unit!r}")
+    return TIME_SPELLINGS[key]
+
+
+def canonical_conc_unit(unit: str) -> str:
+    """Canonical concentration unit (% w/w, %, mg/g, fraction) of a spelling (spaces and case
+    ignored: '%w/w', 'wt%', 'w/w %' are % w/w); unknown units are refused."""
+    key = re.sub(r"\s+", "", unit.strip().lower())
+    if key not in _CONC_SPELLINGS:
+        raise ValueError(
+            f"concentration unit must be one of {', '.join(CONC_UNITS)} (or %w/w, wt%, g/g), "
+            f"got {unit!r}"
+        )
+    return _CONC_SPELLINGS[key]
+
+
+@dataclass(frozen=True)
+class _Column:
+    number: int  # 1-based
+    name: str
+    unit: str | None
+
+
+def _read_rows(path: Path) -> list[list[str]]:
+    """Rows of a delimited text file: comment lines (#) skipped; the delimiter (comma,
+    semicolon or tab) sniffed; decimal commas read as points when the delimiter is not a comma."""
+    with path.open(newline="", encoding="utf-8-sig") as fh:
+        lines = [line for line in fh if line.strip() and not line.lstrip().startswith("#")]
+    if not lines:
+        raise ValueError(f"path {str(path)!r} holds no rows")
+    sample = "".join(lines[:20])
+    counts = {d: sample.count(d) for d in (";", "\t")}
+    delim = max(counts, key=counts.get) if max(counts.values()) >= len(lines[:20]) else ","
+    rows = [r for r in csv.reader(lines, delimiter=delim) if any(c.strip() for c in r)]
+    if delim != ",":
+        rows = [rows[0]] + [[c.replace(",", ".") for c in r] for r in rows[1:]]
+    return rows
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def _header(rows: list[list[str]]) -> tuple[list[_Column], list[list[str]]]:
+    """Columns (number, name, unit) from the header row; a first row of numbers is data (the
+    columns are then named by their numbers)."""
+    first = rows[0]
+    if all(_is_number(c) for c in first):
+        return [_Column(i + 1, str(i + 1), None) for i in range(len(first))], rows
+    cols = []
+    for i, cell in enumerate(first):
+        m = _HDR.match(cell)
+        if not m:
+            raise ValueError(f"header cell {cell!r} is not 'name [unit]' or 'name (unit)'")
+        unit = (m.group(2) or m.group(3) or "").strip() or None
+        cols.append(_Column(i + 1, " ".join(m.group(1).split()), unit))
+    return cols, rows[1:]
+
+
+def _pick(cols: list[_Column], want: str | int | None, role: str, exclude: int = 0) -> _Column:
+    """The column named ``want`` (case-insensitive) or numbered ``want`` (from 1); by default
+    the time column is the one named time/t (else the first) and the concentration column the
+    one other column, or the one named concentration."""
+    names = [c.name for c in cols]
+    if isinstance(want, int) or (isinstance(want, str) and want.strip().isdigit()):
+        k = int(want)
+        if not 1 <= k <= len(cols):
+            raise ValueError(f"{role} column number must be 1..{len(cols)}, got {want!r}")
+        return cols[k - 1]
+    if want is not None:
+        for c in cols:
+            if c.name.lower() == want.strip().lower():
+                return c
+        raise ValueError(f"{role} column {want!r} is not in the header {names!r}")
+    if role == "time":
+        for c in cols:
+            if c.name.lower() in ("time", "t") or c.name.lower().startswith("time"):
+                return c
+        return cols[0]
+    rest = [c for c in cols if c.number != exclude]
+    if len(rest) == 1:
+        return rest[0]
+    for c in rest:
+        if c.name.lower().startswith("conc"):
+            return c
+    raise ValueError(
+        f"concentration column is ambiguous among {[c.name for c in rest]!r}; "
+        "choose one by name or number (--conc-col)"
+    )
 
 
 def load_csv(
     path: str | Path,
     time_unit: str | None = None,
     conc_unit: str | None = None,
-    time_col: str = "time",
-    conc_col: str = "concentration",
+    time_col: str | int | None = None,
+    conc_col: str | int | None = None,
 ) -> Profile:
-    """Load a profile from a CSV with a header naming the columns and declaring units.
+    """Load a tracer profile from a lab export (CSV, semicolon or tab separated; # comments).
 
-    Header cells are ``time [s]`` and ``concentration [% w/w]`` (units in brackets or
-    parentheses); columns are matched by name (case-insensitive). Units not declared in the
-    header must be passed as arguments; a declared unit that contradicts the argument is an
-    error. Lines starting with ``#`` are comments.
+    Columns are chosen by name (case-insensitive, without the unit) or number (from 1); by
+    default the time column is the one named ``time`` (else the first) and the concentration
+    column the only other one (else the one named ``concentration...``). Units come from the
+    header, ``name [unit]`` or ``name (unit)`` (e.g. ``Time (min),API (%w/w)``), or from the
+    arguments; a header unit that contradicts an argument is an error, and so is a unit that
+    is neither declared nor given. Times are converted to s (s, ms, min, h) and
+    concentrations to % w/w (% w/w, %, mg/g x 0.1, fraction x 100; '%' is read as % w/w);
+    ``meta`` records the columns, the source units and the factors.
     """
     p = Path(path)
-    with p.open(newline="") as fh:
-        rows = [
-            r for r in csv.reader(line for line in fh if not line.lstrip().startswith("#")) if r
-        ]
-    if not rows:
-        raise ValueError(f"path {str(p)!r} holds no rows")
-    names, units = [], []
-    for cell in rows[0]:
-        m = _HDR.match(cell)
-        if not m:
-            raise ValueError(f"header cell {cell!r} is not 'name [unit]'")
-        names.append(m.group(1).strip().lower())
-        units.append((m.group(2) or m.group(3) or "").strip() or None)
+    rows = _read_rows(p)
+    cols, data_rows = _header(rows)
+    tc = _pick(cols, time_col, "time")
+    cc = _pick(cols, conc_col, "concentration", exclude=tc.number)
+    if cc.number == tc.number:
+        raise ValueError(f"time and concentration columns must differ, got {tc.name!r} twice")
+    tu = _unit("time_unit", tc.unit, time_unit, canonical_time_unit)
+    cu = _unit("conc_unit", cc.unit, conc_unit, canonical_conc_unit)
     try:
-        it, ic = names.index(time_col), names.index(conc_col)
-    except ValueError:
-        raise ValueError(
-            f"header must have columns {time_col!r} and {conc_col!r}, got {names!r}"
-        ) from None
-    tu = _unit("time_unit", units[it], time_unit)
-    cu = _unit("conc_unit", units[ic], conc_unit)
-    try:
-        data = np.array([[float(r[it]), float(r[ic])] for r in rows[1:]], dtype=float)
+        data = np.array(
+            [[float(r[tc.number - 1]), float(r[cc.number - 1])] for r in data_rows], dtype=float
+        )
     except (ValueError, IndexError) as exc:
         raise ValueError(f"path {str(p)!r} has a non-numeric or short row: {exc}") from None
     if data.size == 0:
         raise ValueError(f"profile must have at least {MIN_POINTS} points, got 0")
-    return from_arrays(data[:, 0], data[:, 1], tu, cu, name=p.stem)
+    factor = CONC_UNITS[cu]
+    prof = from_arrays(data[:, 0], data[:, 1] * factor, tu, "% w/w", name=p.stem)
+    prof.meta.update(
+        {
+            "time_column": tc.name,
+            "conc_column": cc.name,
+            "source_time_unit": tu,
+            "source_conc_unit": cu,
+            "conc_factor_to_pct_w_w": factor,
+        }
+    )
+    return prof
 
 
-def _unit(name: str, declared: str | None, given: str | None) -> str:
+def _unit(name: str, declared: str | None, given: str | None, canon) -> str:
     if declared is None and given is None:
         raise ValueError(f"{name} is not declared in the header nor given, got None")
-    if declared is not None and given is not None and declared != given:
+    d = canon(declared) if declared is not None else None
+    g = canon(given) if given is not None else None
+    if d is not None and g is not None and d != g:
         raise ValueError(f"{name} given as {given!r} but the header declares {declared!r}")
-    return declared if declared is not None else given  # type: ignore[return-value]
+    return d if d is not None else g  # type: ignore[return-value]
 
 
 def e_curve(t: ArrayLike, c: ArrayLike) -> NDArray[np.float64]:

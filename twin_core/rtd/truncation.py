@@ -5,14 +5,19 @@
   set to zero (6.2.2.3.3); ``truncate_relative``: the level is a fraction of the peak height
   (1.25-10 %, Fig. 6.17 / Table 6.2);
 - ``pat_level`` / ``truncate_pat``: the level mu + k sigma of a baseline window where no tracer
-  is present (t > 120 s in the seed; k = 3), 6.2.4 third approach;
+  is present (k = 3; 6.2.4 third approach). The seed took t > 120 s; by default the window is
+  relative to the profile (``baseline_windows``): it starts ``BASELINE_FWHM`` full widths at
+  half maximum after the peak, so a short record or a slow system gets its own window;
+- ``baseline_windows``: the samples before the tracer arrives and after it has left, found on
+  a median-smoothed copy; a signal that does not come back to the level it started from (or
+  is still changing at the end of the record) is refused with an error naming it;
 - ``two_peak_profiles``: the superposed-Gaussian construction of 6.2.2.3.1 (main peak plus
   a tail peak), for the "do tails matter?" case.
 Zeroed samples stay in the array (same length), so E = C / int C of the truncated profile is
 renormalized by its reduced area, as in the seed's Fig. 6.18A.
 
-``parse_spec`` reads the CLI form: ``time:50``, ``level:0.5``, ``rel:0.0375``, ``pat:3`` or
-``pat:3@120`` (k sigma from t >= 120 s).
+``parse_spec`` reads the CLI form: ``time:50``, ``level:0.5``, ``rel:0.0375``, ``pat`` (k = 3),
+``pat:3`` or ``pat:3@120`` (k sigma from t >= 120 s, the seed's absolute window).
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.ndimage import median_filter
 
 __all__ = [
     "truncate_time",
@@ -30,6 +36,10 @@ __all__ = [
     "truncate_pat",
     "two_peak_profiles",
     "baseline_correct",
+    "BaselineWindows",
+    "baseline_windows",
+    "PAT_K",
+    "SEED_PAT_BASELINE_S",
     "trim",
     "TruncationSpec",
     "parse_spec",
@@ -73,30 +83,137 @@ def truncate_relative(y: ArrayLike, fraction: float) -> NDArray[np.float64]:
     )
 
 
-def pat_level(
-    t: ArrayLike, y: ArrayLike, k: float = 3.0, t_baseline: float = 120.0
-) -> tuple[float, float, float]:
-    """(level, mu, sigma): mu + k sigma of the samples with t >= t_baseline."""
+#: default k of the PAT level mu + k sigma (the seed's)
+PAT_K = 3.0
+#: the seed's absolute PAT baseline window: t >= 120 s
+SEED_PAT_BASELINE_S = 120.0
+#: the baseline window starts this many FWHM after the peak
+BASELINE_FWHM = 5.0
+#: a signal has returned when its end level is within this fraction of the peak height (or
+#: 4 baseline standard deviations, whichever is larger) of its starting level
+RETURN_FRACTION = 0.05
+#: fewest samples of a baseline window
+MIN_BASELINE_SAMPLES = 5
+
+
+@dataclass(frozen=True)
+class BaselineWindows:
+    """Samples before the tracer arrives (``pre``, possibly none) and after it has left
+    (``post``), with the peak time, FWHM and peak height above the starting level."""
+
+    pre: NDArray[np.bool_]
+    post: NDArray[np.bool_]
+    t_peak: float
+    fwhm: float
+    height: float
+
+    @property
+    def both(self) -> NDArray[np.bool_]:
+        return self.pre | self.post
+
+    @property
+    def t_post(self) -> float:
+        """Start of the post window (s)."""
+        return self.t_peak + BASELINE_FWHM * self.fwhm
+
+
+def _smooth(y: NDArray) -> NDArray[np.float64]:
+    size = max(5, (y.size // 50) | 1)
+    return median_filter(y, size=size, mode="nearest")
+
+
+def baseline_windows(t: ArrayLike, y: ArrayLike, name: str = "signal") -> BaselineWindows:
+    """Baseline windows of a tracer profile (module docstring). ValueError naming ``name`` if
+    the profile has no peak, ends before ``BASELINE_FWHM`` widths after its peak, or ends at a
+    level that differs from its start by more than max(``RETURN_FRACTION`` x height,
+    4 sd of the end window); without a window before the tracer, the end window must be flat
+    to within the same tolerance."""
     tt, yy = np.asarray(t, float), _y(y)
-    base = yy[tt >= t_baseline]
-    if base.size < 5:
+    if tt.shape != yy.shape or tt.size < 10:
+        raise ValueError(f"t and y must be 1-D of equal shape with >= 10 samples, got {tt.shape}")
+    ys = _smooth(yy)
+    n_edge = max(3, tt.size // 20)
+    start = float(np.median(ys[:n_edge]))
+    end = float(np.median(ys[-max(3, tt.size // 10) :]))
+    ref = min(start, end)
+    i_peak = int(np.argmax(ys))
+    height = float(ys[i_peak] - ref)
+    if not height > 0:
+        raise ValueError(f"{name} has no peak above its baseline (height {height:.3g})")
+    above = ys - ref >= 0.5 * height
+    left = i_peak
+    while left > 0 and above[left - 1]:
+        left -= 1
+    right = i_peak
+    while right < tt.size - 1 and above[right + 1]:
+        right += 1
+    dt = float(np.median(np.diff(tt)))
+    fwhm = max(float(tt[right] - tt[left]), dt)
+    t_peak = float(tt[i_peak])
+    post = tt >= t_peak + BASELINE_FWHM * fwhm
+    need = max(MIN_BASELINE_SAMPLES, tt.size // 20)
+    if post.sum() < need:
         raise ValueError(
-            f"t_baseline leaves {base.size} baseline samples (need >= 5), got {t_baseline!r}"
+            f"{name} does not return to its baseline within the record: the baseline window "
+            f"starts {BASELINE_FWHM:g} peak widths ({fwhm:.3g} s) after the peak at "
+            f"{t_peak:.3g} s, at {t_peak + BASELINE_FWHM * fwhm:.3g} s, and the record ends at "
+            f"{tt[-1]:.3g} s ({int(post.sum())} samples, need {need}); measure longer"
         )
+    rise = int(np.argmax(ys - ref > 0.05 * height))
+    pre = tt <= tt[rise] - fwhm
+    post_y = yy[post]
+    tol = max(RETURN_FRACTION * height, 4.0 * float(np.std(post_y, ddof=1)))
+    if pre.sum() >= MIN_BASELINE_SAMPLES:
+        gap = float(np.mean(post_y) - np.mean(yy[pre]))
+        if abs(gap) > tol:
+            raise ValueError(
+                f"{name} does not return to its baseline: after {t_peak + BASELINE_FWHM * fwhm:.3g}"
+                f" s its mean is {np.mean(post_y):.4g}, {gap:+.3g} from the level before the "
+                f"tracer ({np.mean(yy[pre]):.4g}; tolerance {tol:.3g})"
+            )
+    else:
+        tp = tt[post]
+        slope = np.polyfit(tp, post_y, 1)[0]
+        drift = float(slope * (tp[-1] - tp[0]))
+        if abs(drift) > tol:
+            raise ValueError(
+                f"{name} does not return to its baseline: it still changes by {drift:+.3g} "
+                f"over its last {tp[-1] - tp[0]:.3g} s (tolerance {tol:.3g})"
+            )
+    return BaselineWindows(pre, post, t_peak, fwhm, height)
+
+
+def pat_level(
+    t: ArrayLike, y: ArrayLike, k: float = PAT_K, t_baseline: float | None = None
+) -> tuple[float, float, float]:
+    """(level, mu, sigma): mu + k sigma of the baseline window, t >= ``t_baseline`` if given
+    (the seed: 120 s), else the post window of :func:`baseline_windows`."""
+    tt, yy = np.asarray(t, float), _y(y)
     if not k >= 0:
         raise ValueError(f"k must be >= 0, got {k!r}")
+    window = baseline_windows(tt, yy).post if t_baseline is None else tt >= t_baseline
+    base = yy[window]
+    if base.size < MIN_BASELINE_SAMPLES:
+        raise ValueError(
+            f"t_baseline leaves {base.size} baseline samples (need >= {MIN_BASELINE_SAMPLES}), "
+            f"got {t_baseline!r}"
+        )
     mu, sd = float(np.mean(base)), float(np.std(base, ddof=1))
     return mu + k * sd, mu, sd
 
 
-def truncate_pat(t: ArrayLike, y: ArrayLike, k: float = 3.0, t_baseline: float = 120.0) -> NDArray:
+def truncate_pat(
+    t: ArrayLike, y: ArrayLike, k: float = PAT_K, t_baseline: float | None = None
+) -> NDArray:
     """PAT-based truncation: zero every sample below mu + k sigma of the baseline window."""
     lvl, _, _ = pat_level(t, y, k, t_baseline)
     return truncate_level(y, max(lvl, 0.0))
 
 
-def baseline_correct(t: ArrayLike, y: ArrayLike, t_baseline: float = 120.0) -> NDArray[np.float64]:
-    """Subtract the mean of the baseline window t >= t_baseline (a PAT offset; not part of the
+def baseline_correct(
+    t: ArrayLike, y: ArrayLike, t_baseline: float | None = None
+) -> NDArray[np.float64]:
+    """Subtract the mean of the baseline window (``pat_level``'s; a PAT offset; not part of the
     seed's workflow, offered because the offset biases the area and hence E)."""
     _, mu, _ = pat_level(t, y, 0.0, t_baseline)
     return _y(y) - mu
@@ -164,7 +281,7 @@ def two_peak_profiles(
 class TruncationSpec:
     kind: str
     value: float
-    t_baseline: float = 120.0
+    t_baseline: float | None = None
 
     def apply(self, t: ArrayLike, y: ArrayLike) -> NDArray[np.float64]:
         if self.kind == "time":
@@ -177,17 +294,23 @@ class TruncationSpec:
 
 
 def parse_spec(spec: str) -> TruncationSpec:
-    """Parse ``time:S``, ``level:C``, ``rel:F``, ``pat:K`` or ``pat:K@T``."""
+    """Parse ``time:S``, ``level:C``, ``rel:F``, ``pat`` (k = ``PAT_K``), ``pat:K`` or
+    ``pat:K@T``."""
+    if spec.strip().lower() == "pat":
+        return TruncationSpec("pat", PAT_K)
     if ":" not in spec:
         raise ValueError(f"truncate spec must be 'kind:value', got {spec!r}")
     kind, val = spec.split(":", 1)
     kind = kind.strip().lower()
     if kind not in ("time", "level", "rel", "pat"):
         raise ValueError(f"truncate kind must be time, level, rel or pat, got {kind!r}")
-    tb = 120.0
+    tb = None
     if kind == "pat" and "@" in val:
         val, tbs = val.split("@", 1)
-        tb = float(tbs)
+        try:
+            tb = float(tbs)
+        except ValueError:
+            raise ValueError(f"pat baseline start must be a number, got {tbs!r}") from None
     try:
         v = float(val)
     except ValueError:
