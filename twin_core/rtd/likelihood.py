@@ -1,0 +1,934 @@
+"""Fits on the raw profile by generalised least squares with an estimated noise covariance.
+
+Measurement model of a tracer profile on times t_i (uniform step):
+
+    y_i = b + A E(t_i; theta) + e_i,   Cov(e) = Sigma = s_w^2 I + s_p^2 C + k^2 diag(s_i^2),
+
+with b the baseline (fitted, fixed to 0 or to a given value), A the amplitude (area of the
+profile), s = A E the signal, s_w white noise, s_p 1/f (pink) noise of correlation C and k
+the proportional coefficient (seed 6.1.3.2; ``rtd.noise``). C is the Toeplitz correlation
+of a 1/f spectrum on the frequencies j / (F T), j = 1 .. F N / 2, of a record F = 4 times
+the record length T (power below 1/T shows as an offset and a drift, which the baseline and
+the correlation carry). Outliers are left out of the likelihood (rows and columns dropped).
+
+The variance components (s_w^2, s_p^2, k^2) are estimated by restricted maximum likelihood
+(REML, Patterson & Thompson 1971; Harville 1977, JASA 72, 320) on the residual of the
+current fit, with the fixed-effect design X = [J, B]: the model's Jacobian J and a B-spline
+basis B spanning the signal region. Projecting out B keeps a systematic misfit (a tail the
+model cannot follow) out of the noise estimate; it then shows up in the lack-of-fit test
+instead of widening the intervals. Then theta is fitted by generalised least squares
+(``scipy.optimize.least_squares`` on the residual whitened by the Cholesky factor L of
+Sigma, L^-1 (y - mu)), and the covariance is (J^T Sigma^-1 J)^-1 (Seber & Wild 1989,
+"Nonlinear Regression", ch. 2.8; two rounds of estimated GLS, Carroll & Ruppert 1988).
+
+Lack of fit: with e = L^-1 (y - mu_hat) and W = L^-1 [J, B], the drop of the whitened
+residual sum of squares when the spline basis is added, D = |P_W e|^2 (a score test against
+a smooth alternative; e is orthogonal to L^-1 J at the optimum), is compared with its null
+distribution: F = (D / q) / ((|e|^2 - D) / (n - p - q)) ~ F(q, n - p - q), q = rank W - rank
+L^-1 J (Seber & Wild 1989, ch. 9.5; Hart 1997, "Nonparametric Smoothing and Lack-of-Fit
+Tests"). Because the noise covariance includes the 1/f part, slow noise is not mistaken for a
+misfit; a p-value below ``LACK_OF_FIT_ALPHA`` marks the fit inadequate.
+
+Information criteria use the Gaussian log-likelihood with the same Sigma for every candidate:
+-2 ln L = n ln(2 pi) + ln|Sigma| + e^T e; AICc = -2 ln L + 2p + 2p(p+1)/(n - p - 1),
+BIC = -2 ln L + p ln n (Burnham & Anderson 2002). Since Sigma holds the correlation, the
+likelihood counts correlated samples as the information they carry (no separate effective
+sample size is needed).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import linalg, stats
+from scipy.interpolate import BSpline
+from scipy.ndimage import median_filter
+from scipy.optimize import least_squares, minimize
+from scipy.signal import fftconvolve
+
+from twin_core.rtd.fitting import initial_guess
+from twin_core.rtd.models import ModelSpec, get_model
+
+__all__ = [
+    "NoiseModel",
+    "LackOfFit",
+    "DeviationTest",
+    "exchange_directions",
+    "RawFit",
+    "Satterthwaite",
+    "pink_correlation",
+    "spline_basis",
+    "estimate_noise",
+    "fit_raw",
+    "fit_candidates",
+    "Ranking",
+    "FitTimeout",
+    "LACK_OF_FIT_ALPHA",
+    "TIME_LIMIT_S",
+]
+
+#: significance level of the lack-of-fit test
+LACK_OF_FIT_ALPHA = 0.01
+#: default wall-clock limit of one model's fit (s)
+TIME_LIMIT_S = 30.0
+#: record-length factor F of the 1/f correlation (lowest frequency 1 / (F T))
+PINK_RECORD_FACTOR = 4
+#: falling thresholds of the model-based outlier screen (|z| of the leave-one-out prediction
+#: error; 0.27 % of Gaussian samples exceed 3) and the extra rounds at the last one
+OUTLIER_STEPS = (6.0, 4.5, 3.0)
+OUTLIER_REPEATS = 2
+#: number of cubic B-splines of the lack-of-fit alternative
+SPLINE_COUNT = 6
+
+
+class FitTimeout(RuntimeError):
+    """Raised inside a fit that ran past its time limit."""
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Variance components of the measurement noise (concentration units squared; k^2)."""
+
+    white_var: float
+    pink_var: float
+    prop_var: float
+
+    def covariance(self, corr: NDArray, signal: NDArray) -> NDArray[np.float64]:
+        """Sigma = s_w^2 I + s_p^2 C + k^2 diag(s^2) (module docstring)."""
+        cov = self.pink_var * corr
+        cov[np.diag_indices_from(cov)] += self.white_var + self.prop_var * signal**2
+        return cov
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "sigma_white": float(np.sqrt(self.white_var)),
+            "sigma_pink": float(np.sqrt(self.pink_var)),
+            "k_proportional": float(np.sqrt(self.prop_var)),
+        }
+
+
+@dataclass(frozen=True)
+class DeviationTest:
+    """F test of the residual against one family of deviations (statistic, degrees of freedom,
+    p-value)."""
+
+    name: str
+    statistic: float
+    df: tuple[int, float]
+    p_value: float
+
+    def as_dict(self) -> dict:
+        return {
+            "statistic": self.statistic,
+            "df": [self.df[0], self.df[1]],
+            "p_value": self.p_value,
+        }
+
+
+@dataclass(frozen=True)
+class LackOfFit:
+    """Lack-of-fit tests of a fit (module docstring); the fit is adequate when the smallest
+    p-value times the number of tests (Bonferroni) is at least ``alpha``."""
+
+    tests: tuple[DeviationTest, ...]
+    alpha: float
+    noise: NoiseModel
+    """noise estimated with the deviations in the design (free of a misfit)"""
+
+    @property
+    def p_value(self) -> float:
+        if not self.tests:
+            return 1.0
+        return float(min(1.0, len(self.tests) * min(x.p_value for x in self.tests)))
+
+    @property
+    def adequate(self) -> bool:
+        return bool(self.p_value >= self.alpha)
+
+    def as_dict(self) -> dict:
+        return {
+            "adequate": self.adequate,
+            "p_value": self.p_value,
+            "alpha": self.alpha,
+            "method": "F tests of the GLS residual against smooth deviations (cubic splines) and "
+            "a stagnant-zone tail, white + 1/f + proportional noise, Satterthwaite df, Bonferroni",
+            "tests": {x.name: x.as_dict() for x in self.tests},
+        }
+
+
+@dataclass(frozen=True)
+class Satterthwaite:
+    """Degrees of freedom of a variance c^T Cov c whose Cov = (J^T Sigma^-1 J)^-1 depends on
+    estimated noise components phi: nu = 2 v^2 / (g^T I^-1 g), g_j = dv/dphi_j =
+    u^T dSigma_j u with u = Sigma^-1 J Cov c, I the REML information of phi (Satterthwaite
+    1946; Kenward & Roger 1997, Biometrics 53, 983)."""
+
+    sens: NDArray[np.float64] = field(repr=False)
+    corr: NDArray[np.float64] = field(repr=False)
+    sig2: NDArray[np.float64] = field(repr=False)
+    info_inv: NDArray[np.float64] = field(repr=False)
+
+    def df(self, c: NDArray, cov: NDArray) -> float:
+        var = float(c @ cov @ c)
+        u = self.sens @ c
+        g = np.array([u @ u, u @ (self.corr @ u), np.sum(u**2 * self.sig2)])
+        var_v = float(g @ self.info_inv @ g)
+        return 2.0 * var**2 / var_v if var_v > 0 else float("inf")
+
+
+@dataclass
+class RawFit:
+    """A model fitted to the raw profile: estimates, covariance, noise, adequacy, criteria."""
+
+    model: str
+    names: tuple[str, ...]
+    params: dict[str, float]
+    cov: NDArray[np.float64] = field(repr=False)
+    noise: NoiseModel
+    lack_of_fit: LackOfFit
+    chi2: float
+    n: int
+    loglik: float
+    aicc: float
+    bic: float
+    success: bool
+    message: str
+    seconds: float
+    fitted: NDArray[np.float64] = field(repr=False)
+    dof: Satterthwaite = field(repr=False)
+    excluded: NDArray[np.intp] = field(repr=False)
+    """samples left out of the likelihood (given outliers and those the fit flagged)"""
+    alpha: float = 0.05
+
+    @property
+    def k(self) -> int:
+        return len(self.names)
+
+    @property
+    def stderr(self) -> dict[str, float]:
+        se = np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
+        return {k: float(v) for k, v in zip(self.names, se)}
+
+    @property
+    def theta(self) -> NDArray[np.float64]:
+        """The model's parameters (without amplitude and baseline), in the model's order."""
+        return np.array([self.params[k] for k in get_model(self.model).params])
+
+    def theta_cov(self) -> NDArray[np.float64]:
+        p = len(get_model(self.model).params)
+        return self.cov[:p, :p]
+
+    def interval(
+        self, value: float, grad: ArrayLike, log_scale: bool = False
+    ) -> tuple[float, float]:
+        """Wald interval of a function g of the parameters with gradient ``grad``: value +/-
+        t_nu SE, SE^2 = grad^T Cov grad, nu Satterthwaite's; ``log_scale`` (g > 0) builds it
+        for ln g, value exp(+/- t_nu SE / value), which stays positive and follows the skew."""
+        c = np.asarray(grad, dtype=float)
+        se = float(np.sqrt(max(c @ self.cov @ c, 0.0)))
+        nu = self.dof.df(c, self.cov)
+        level = 1 - self.alpha / 2
+        q = float(stats.t.ppf(level, nu)) if np.isfinite(nu) else float(stats.norm.ppf(level))
+        if log_scale and value > 0:
+            return float(value * np.exp(-q * se / value)), float(value * np.exp(q * se / value))
+        return float(value - q * se), float(value + q * se)
+
+    @property
+    def ci(self) -> dict[str, tuple[float, float]]:
+        """Intervals of the parameters (:meth:`interval`); parameters bounded below by 0 (times,
+        Pe, n, amplitude) on the log scale."""
+        eye = np.eye(self.k)
+        return {
+            k: self.interval(self.params[k], eye[i], k in _POSITIVE)
+            for i, k in enumerate(self.names)
+        }
+
+    @property
+    def adequate(self) -> bool:
+        return self.lack_of_fit.adequate
+
+    def as_dict(self) -> dict:
+        return {
+            "model": self.model,
+            "params": self.params,
+            "stderr": self.stderr,
+            "ci": {k: list(v) for k, v in self.ci.items()},
+            "confidence": 1 - self.alpha,
+            "adequate": self.adequate,
+            "lack_of_fit": self.lack_of_fit.as_dict(),
+            "noise": self.noise.as_dict(),
+            "chi2": self.chi2,
+            "n": self.n,
+            "excluded": self.excluded.tolist(),
+            "loglik": self.loglik,
+            "aicc": self.aicc,
+            "bic": self.bic,
+            "success": self.success,
+            "message": self.message,
+            "seconds": self.seconds,
+        }
+
+
+#: parameters with a lower bound of 0 whose intervals are built on the log scale
+_POSITIVE = frozenset({"tau", "pe", "n", "tau_cstr", "sigma", "tau_e", "b", "c", "scale"})
+
+
+def pink_correlation(n: int, factor: int | None = None) -> NDArray[np.float64]:
+    """Toeplitz correlation (n x n) of 1/f noise sampled at unit step: c(m) proportional to
+    sum_j cos(2 pi j m / (F n)) / j over j = 1 .. F n / 2, c(0) = 1 (Wiener-Khinchin)."""
+    factor = PINK_RECORD_FACTOR if factor is None else factor
+    if n < 2 or factor < 1:
+        raise ValueError(f"n must be >= 2 and factor >= 1, got {n!r}, {factor!r}")
+    m = factor * n
+    spec = np.zeros(m // 2 + 1)
+    j = np.arange(1, spec.size)
+    spec[1:] = 1.0 / j
+    acf = np.fft.irfft(spec, m)[:n]
+    return linalg.toeplitz(acf / acf[0])
+
+
+def spline_basis(
+    t: NDArray[np.float64], start: float, stop: float, count: int = SPLINE_COUNT
+) -> NDArray[np.float64]:
+    """``count`` cubic B-splines with uniform knots on [start, stop], zero outside."""
+    if not stop > start or count < 4:
+        raise ValueError(f"need stop > start and count >= 4, got {start!r}, {stop!r}, {count!r}")
+    inner = np.linspace(start, stop, count - 2)
+    h = inner[1] - inner[0]
+    knots = np.concatenate(
+        [inner[0] - h * np.arange(3, 0, -1), inner, inner[-1] + h * np.arange(1, 4)]
+    )
+    out = np.empty((t.size, count))
+    for i in range(count):
+        out[:, i] = BSpline.basis_element(knots[i : i + 5], extrapolate=False)(t)
+    out = np.nan_to_num(out)
+    out[(t < start) | (t > stop)] = 0.0
+    keep = np.any(out != 0, axis=0)
+    return out[:, keep]
+
+
+def _neg2_loglik(
+    eta: NDArray,
+    r: NDArray,
+    x: NDArray,
+    corr: NDArray,
+    corr_lower: NDArray,
+    sig2: NDArray,
+    restricted: bool,
+) -> tuple[float, NDArray]:
+    """-2 x the (restricted, or profile ML) Gaussian log-likelihood of the residual r with
+    the columns of x projected out, up to n ln(2 pi), and its gradient in eta = log var:
+
+    -2 l = ln|Sigma| [+ ln|X^T Sigma^-1 X|] + r^T P r,
+    P = Sigma^-1 - Sigma^-1 X K X^T Sigma^-1, K = (X^T Sigma^-1 X)^-1,
+    d(-2 l)/d var_i = tr(M dSigma_i) - r^T P dSigma_i P r,  M = P (REML) or Sigma^-1 (ML)
+    (Harville 1977). ``corr_lower`` is corr with the strict lower triangle doubled and the
+    upper zeroed, so that sum(lower(Sigma^-1) * corr_lower) = tr(Sigma^-1 corr)."""
+    w, p, k = np.exp(eta)
+    cov = p * corr
+    cov[np.diag_indices_from(cov)] += w + k * sig2
+    try:
+        cf = linalg.cho_factor(cov, lower=True, check_finite=False)
+        vx = linalg.cho_solve(cf, x, check_finite=False)
+        kf = linalg.cho_factor(x.T @ vx, lower=True, check_finite=False)
+    except linalg.LinAlgError:
+        return 1e300, np.zeros(3)
+    inv_low, info = linalg.lapack.dpotri(cf[0], lower=1)  # lower triangle of Sigma^-1
+    if info != 0:
+        return 1e300, np.zeros(3)
+    vxk = linalg.cho_solve(kf, vx.T, check_finite=False).T  # Sigma^-1 X K
+    pr = linalg.cho_solve(cf, r, check_finite=False) - vxk @ (vx.T @ r)
+    diag_inv = np.diag(inv_low)
+    tr_inv = (float(np.sum(diag_inv)), float(np.sum(inv_low * corr_lower)), float(diag_inv @ sig2))
+    if restricted:
+        # tr(Sigma^-1 X K X^T Sigma^-1 D) for D = I, C, diag(sig2)
+        tr_x = (
+            float(np.sum(vxk * vx)),
+            float(np.sum(vxk * (corr @ vx))),
+            float(np.sum(vxk * vx * sig2[:, None])),
+        )
+        tr_m = np.subtract(tr_inv, tr_x)
+    else:
+        tr_m = np.array(tr_inv)
+    logdet = 2 * np.sum(np.log(np.diag(cf[0])))
+    if restricted:
+        logdet += 2 * np.sum(np.log(np.diag(kf[0])))
+    quad = np.array([pr @ pr, pr @ (corr @ pr), np.sum(pr**2 * sig2)])
+    return float(logdet + r @ pr), (tr_m - quad) * np.exp(eta)
+
+
+def _lower_weights(corr: NDArray) -> NDArray[np.float64]:
+    """corr with the strict lower triangle doubled and the upper triangle zeroed."""
+    out = np.tril(corr, -1) * 2.0
+    out[np.diag_indices_from(out)] = np.diag(corr)
+    return out
+
+
+def estimate_noise(
+    r: ArrayLike,
+    x: ArrayLike,
+    corr: ArrayLike,
+    signal: ArrayLike,
+    start: NoiseModel | None = None,
+    restricted: bool = True,
+    tol: float = 1e-9,
+) -> tuple[NoiseModel, float]:
+    """(noise model, -2 log-likelihood at it): REML (``restricted``) or profile ML estimate of
+    (s_w^2, s_p^2, k^2) from the residual ``r`` of a fit with fixed-effect design ``x``
+    (columns projected out), 1/f correlation ``corr`` and signal (module docstring). Each
+    component is bounded below by 1e-8 of the residual variance; ``tol`` is the relative
+    tolerance on -2 ln L (L-BFGS-B ``ftol``)."""
+    rr = np.asarray(r, dtype=float)
+    xx = np.asarray(x, dtype=float)
+    cc = np.asarray(corr, dtype=float)
+    sig2 = np.asarray(signal, dtype=float) ** 2
+    v = float(np.var(rr)) or 1e-12
+    s2 = float(np.mean(sig2)) or 1.0
+    if start is None:
+        start = NoiseModel(0.5 * v, 0.3 * v, 1e-3 * v / s2)
+    lo = np.log(1e-8 * v) - np.log([1.0, 1.0, s2])
+    hi = np.log(100 * v) - np.log([1.0, 1.0, s2])
+    # every component starts at >= 1 % of the residual variance: on the log scale a component
+    # at its lower bound has a vanishing gradient and would stay there
+    eta0 = np.log(
+        np.maximum(
+            [start.white_var, start.pink_var, start.prop_var], 0.01 * v / np.array([1.0, 1.0, s2])
+        )
+    )
+    res = minimize(
+        _neg2_loglik,
+        np.clip(eta0, lo, hi),
+        args=(rr, xx, cc, _lower_weights(cc), sig2, restricted),
+        jac=True,
+        method="L-BFGS-B",
+        bounds=list(zip(lo, hi)),
+        options={"ftol": tol},
+    )
+    w, p, k = np.exp(res.x)
+    return NoiseModel(float(w), float(p), float(k)), float(res.fun) + rr.size * np.log(2 * np.pi)
+
+
+@dataclass(frozen=True)
+class _Mean:
+    """mu(x) = b + A E(t; theta), x = (theta, A[, b]); b is fitted when ``baseline`` is None."""
+
+    spec: ModelSpec
+    t: NDArray[np.float64]
+    baseline: float | None
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.spec.params + ("scale",) + (("baseline",) if self.baseline is None else ())
+
+    def split(self, x: NDArray) -> tuple[NDArray, float, float]:
+        p = len(self.spec.params)
+        b = float(x[p + 1]) if self.baseline is None else self.baseline
+        return x[:p], float(x[p]), b
+
+    def signal(self, x: NDArray) -> NDArray[np.float64]:
+        theta, a, _ = self.split(x)
+        return a * self.spec.func(self.t, *theta)
+
+    def __call__(self, x: NDArray) -> NDArray[np.float64]:
+        return self.signal(x) + self.split(x)[2]
+
+    def jac(self, x: NDArray) -> NDArray[np.float64]:
+        theta, a, _ = self.split(x)
+        e = self.spec.func(self.t, *theta)
+        if self.spec.jac is not None:
+            je = self.spec.jac(self.t, *theta)
+        else:
+            je = np.empty((self.t.size, theta.size))
+            for i, v in enumerate(theta):
+                h = 1e-6 * max(abs(v), 1e-3)
+                if v + h > self.spec.upper[i]:  # backward difference at an upper bound
+                    h = -h
+                tp = theta.copy()
+                tp[i] = v + h
+                je[:, i] = (self.spec.func(self.t, *tp) - e) / h
+        cols = [a * je, e[:, None]]
+        if self.baseline is None:
+            cols.append(np.ones((self.t.size, 1)))
+        return np.hstack(cols)
+
+    def bounds(self) -> tuple[NDArray, NDArray]:
+        lo = list(self.spec.lower) + [0.0] + ([-np.inf] if self.baseline is None else [])
+        hi = list(self.spec.upper) + [np.inf] + ([np.inf] if self.baseline is None else [])
+        return np.array(lo, float), np.array(hi, float)
+
+
+def _least_squares(
+    resid,
+    jac,
+    x0: NDArray,
+    bounds: tuple[NDArray, NDArray],
+    deadline: float,
+    robust_scale: float | None = None,
+) -> object:
+    """``least_squares`` (TRF) that raises FitTimeout past ``deadline`` (perf_counter); with
+    ``robust_scale`` the Cauchy loss of that scale (outliers lose their pull)."""
+
+    def guarded(x: NDArray) -> NDArray:
+        if time.perf_counter() > deadline:
+            raise FitTimeout("time limit")
+        return resid(x)
+
+    lo, hi = bounds
+    pad = 1e-9 * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0.0)))
+    x0 = np.clip(x0, lo + pad, hi - np.where(np.isfinite(hi), pad, 0.0))
+    if robust_scale is None:
+        return least_squares(guarded, x0, jac=jac, bounds=bounds, method="trf", x_scale="jac")
+    return least_squares(
+        guarded,
+        x0,
+        jac=jac,
+        bounds=bounds,
+        method="trf",
+        x_scale="jac",
+        loss="cauchy",
+        f_scale=robust_scale,
+    )
+
+
+def _whitener(cov: NDArray) -> NDArray[np.float64]:
+    return linalg.cholesky(cov, lower=True, check_finite=False)
+
+
+def _signal_window(t: NDArray, s: NDArray) -> tuple[float, float]:
+    """[start, stop] of the spline alternative: the 0.1-99.9 % mass range w of the fitted
+    signal, widened by w/4 before and w after (a longer tail than the model's), clipped to t."""
+    pos = np.clip(s, 0.0, None)
+    f = np.concatenate([[0.0], np.cumsum(0.5 * (pos[1:] + pos[:-1]) * np.diff(t))])
+    if not f[-1] > 0:
+        return float(t[0]), float(t[-1])
+    f /= f[-1]
+    a = float(np.interp(0.001, f, t))
+    b = float(np.interp(0.999, f, t))
+    w = max(b - a, 3 * float(np.median(np.diff(t))))
+    return max(float(t[0]), a - 0.25 * w), min(float(t[-1]), b + w)
+
+
+def exchange_directions(
+    t: NDArray[np.float64], signal: NDArray[np.float64], scales: tuple[float, ...] = (0.5, 1.0, 2.0)
+) -> NDArray[np.float64]:
+    """Directions in which a small stagnant zone (volume ratio r -> 0, exchange time tau_x)
+    changes a fitted signal s(t): with the mobile-immobile substitution s -> s (1 + r / (1 +
+    s tau_x)) of the transfer function (van Genuchten & Wierenga 1976),
+    dE/dr at r = 0 is d/dt[(-t s) * exp(-t / tau_x) / tau_x] (convolution). One column per
+    tau_x = scale x (mean of s - its onset); t uniform."""
+    dt = float(np.median(np.diff(t)))
+    pos = np.clip(signal, 0.0, None)
+    area = float(np.sum(pos)) * dt
+    if not area > 0:
+        return np.zeros((t.size, 0))
+    mean = float(np.sum(t * pos)) * dt / area
+    onset = float(t[np.argmax(pos > 0.05 * pos.max())])
+    span = max(mean - onset, 2 * dt)
+    cols = []
+    for scale in scales:
+        lag = np.arange(t.size) * dt
+        kernel = np.exp(-lag / (scale * span)) / (scale * span)
+        conv = fftconvolve(-t * signal, kernel)[: t.size] * dt
+        cols.append(np.gradient(conv, t))
+    return np.column_stack(cols)
+
+
+def _deviation_test(
+    name: str, e: NDArray, uj: NDArray, bw: NDArray, lsolve, d_sigma, info_inv: NDArray
+) -> DeviationTest:
+    """F = |U^T e|^2 / q for the whitened deviations bw orthogonal to the model's span uj, with
+    Satterthwaite df nu = 2 / Var(v), v(phi) = tr(U^T L^-1 Sigma(phi) L^-T U) / q the noise
+    scale in the tested subspace (1 at the estimate; Var by the REML information)."""
+    perp = bw - uj @ (uj.T @ bw)
+    u = _span(perp)
+    q = u.shape[1]
+    if q < 1:
+        return DeviationTest(name, 0.0, (0, float("inf")), 1.0)
+    stat = float(np.sum((u.T @ e) ** 2)) / q
+    lu = lsolve(u)
+    g = np.array([np.sum(lu * (d @ lu)) / q for d in d_sigma])
+    var_v = float(g @ info_inv @ g)
+    nu = 2.0 / var_v if var_v > 0 else float("inf")
+    p = float(stats.f.sf(stat, q, nu)) if np.isfinite(nu) else float(stats.chi2.sf(stat * q, q))
+    return DeviationTest(name, stat, (q, float(nu)), p)
+
+
+def _alternatives(t: NDArray, signal: NDArray, mask: NDArray) -> dict[str, NDArray]:
+    """The deviation families of the lack-of-fit test for a fitted signal (rows kept)."""
+    return {
+        "shape": spline_basis(t, *_signal_window(t, signal))[mask],
+        "tail": exchange_directions(t, signal)[mask],
+    }
+
+
+def _reml_information_inverse(
+    chol: NDArray, design: NDArray, corr: NDArray, sig: NDArray, noise: NoiseModel
+) -> NDArray[np.float64]:
+    """Inverse REML information of (s_w^2, s_p^2, k^2), I_jk = tr(P dSigma_j P dSigma_k) / 2
+    with P the projection of the design; components estimated at their lower bound carry no
+    sampling variance (rows and columns zero)."""
+    d_sigma = (np.eye(sig.size), corr, np.diag(sig**2))
+    inv = linalg.cho_solve((chol, True), np.eye(sig.size), check_finite=False)
+    vx = inv @ design
+    proj = inv - vx @ np.linalg.pinv(design.T @ vx) @ vx.T
+    pd = [proj @ d for d in d_sigma]
+    info = 0.5 * np.array([[np.sum(a * b.T) for b in pd] for a in pd])
+    share = np.array([noise.white_var, noise.pink_var, noise.prop_var * np.mean(sig**2)])
+    active = share > 1e-3 * share.sum()
+    out = np.zeros((3, 3))
+    out[np.ix_(active, active)] = np.linalg.pinv(info[np.ix_(active, active)])
+    return out
+
+
+def _lack_of_fit(
+    e: NDArray,
+    chol: NDArray,
+    jac: NDArray,
+    alternatives: dict[str, NDArray],
+    corr: NDArray,
+    sig: NDArray,
+    noise: NoiseModel,
+) -> tuple[DeviationTest, ...]:
+    """F tests of the whitened residual e (Cholesky factor ``chol`` of Sigma) of a fit with
+    Jacobian ``jac`` against each family of deviations; the REML information of the noise
+    components is taken with every family in the design, as the noise was estimated (module
+    docstring)."""
+    d_sigma = (np.eye(e.size), corr, np.diag(sig**2))
+    design = np.hstack([jac, *alternatives.values()])
+
+    def white(a: NDArray) -> NDArray:
+        return linalg.solve_triangular(chol, a, lower=True, check_finite=False)
+
+    def lsolve(a: NDArray) -> NDArray:
+        return linalg.solve_triangular(chol.T, a, lower=False, check_finite=False)
+
+    info_inv = _reml_information_inverse(chol, design, corr, sig, noise)
+    uj = _span(white(jac))
+    return tuple(
+        _deviation_test(name, e, uj, white(b), lsolve, d_sigma, info_inv)
+        for name, b in alternatives.items()
+        if b.shape[1]
+    )
+
+
+def _span(a: NDArray) -> NDArray[np.float64]:
+    """Orthonormal basis of the column space of ``a`` (SVD, relative tolerance 1e-8)."""
+    u, sv, _ = np.linalg.svd(a, full_matrices=False)
+    return u[:, sv > 1e-8 * sv[0]] if sv.size and sv[0] > 0 else u[:, :0]
+
+
+def _criteria(chi2: float, logdet: float, n: int, p: int) -> tuple[float, float, float]:
+    """(log-likelihood, AICc, BIC) of a GLS fit (module docstring)."""
+    ll = -0.5 * (n * np.log(2 * np.pi) + logdet + chi2)
+    aicc = -2 * ll + 2 * p + 2 * p * (p + 1) / max(n - p - 1, 1)
+    bic = -2 * ll + p * np.log(n)
+    return float(ll), float(aicc), float(bic)
+
+
+def _difference_scale(y: NDArray) -> float:
+    """Robust scale of the sample-to-sample noise: 1.4826 MAD of the first differences / sqrt 2
+    (the signal changes little between samples; Rice 1984)."""
+    d = np.diff(y)
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
+def _gls_round(
+    mean: _Mean,
+    y: NDArray,
+    mask: NDArray,
+    corr_full: NDArray,
+    x: NDArray,
+    noise: NoiseModel | None,
+    estimate: bool,
+    deadline: float,
+    tol: float = 1e-9,
+) -> tuple[NDArray, NoiseModel, NDArray, object]:
+    """One round: the noise re-estimated by REML at x (when ``estimate``), then the GLS fit.
+    Returns (x, noise, Cholesky factor of Sigma at the start x, least-squares result)."""
+    corr = corr_full[np.ix_(mask, mask)]
+    ym = y[mask]
+    sig = mean.signal(x)[mask]
+    if estimate:
+        noise, _ = estimate_noise(ym - mean(x)[mask], mean.jac(x)[mask], corr, sig, noise, tol=tol)
+    chol = _whitener(noise.covariance(corr, sig))
+
+    def resid(v: NDArray) -> NDArray:
+        return linalg.solve_triangular(chol, mean(v)[mask] - ym, lower=True, check_finite=False)
+
+    def jac(v: NDArray) -> NDArray:
+        return linalg.solve_triangular(chol, mean.jac(v)[mask], lower=True, check_finite=False)
+
+    res = _least_squares(resid, jac, x, mean.bounds(), deadline)
+    return res.x, noise, chol, res
+
+
+def _conditional_outliers(chol: NDArray, r: NDArray, z_crit: float) -> NDArray[np.intp]:
+    """Indices whose residual, given all the others, is improbable: z_i = (Sigma^-1 r)_i /
+    sqrt((Sigma^-1)_ii) is the standardized leave-one-out prediction error of a Gaussian
+    vector (Haslett & Hayes 1998, Int. Stat. Rev. 66, 1); flagged when |z_i| > ``z_crit``."""
+    inv_low, info = linalg.lapack.dpotri(chol, lower=1)
+    if info != 0:
+        return np.zeros(0, dtype=np.intp)
+    pr = linalg.cho_solve((chol, True), r, check_finite=False)
+    z = pr / np.sqrt(np.diag(inv_low))
+    return np.nonzero(np.abs(z) > z_crit)[0].astype(np.intp)
+
+
+def _check_uniform(t: NDArray) -> None:
+    steps = np.diff(t)
+    if np.ptp(steps) > 0.01 * np.median(steps):
+        raise ValueError(
+            "t must be uniformly sampled for the noise model (steps vary by "
+            f"{np.ptp(steps) / np.median(steps):.1%}), got steps {steps.min():g}-{steps.max():g} s"
+        )
+
+
+def _starts(mean: _Mean, y: NDArray, keep: NDArray) -> list[NDArray]:
+    """Initial vectors: the model's moment-based starts from a median-smoothed copy above the
+    baseline guess (median of the last quarter of the record) with the samples below 5 % of
+    its peak zeroed (noise in the tail would inflate the moments), the amplitude its area, and
+    the baseline guess."""
+    t = mean.t
+    b0 = (
+        float(np.median(y[keep][-max(keep.sum() // 4, 3) :]))
+        if mean.baseline is None
+        else mean.baseline
+    )
+    above = median_filter(np.where(keep, y, np.median(y)) - b0, size=5, mode="nearest")
+    above[above < 0.05 * above.max()] = 0.0
+    area = float(np.trapezoid(above, t))
+    out = []
+    for x in initial_guess(mean.spec, t, above):
+        v = np.append(x, area)
+        out.append(np.append(v, b0) if mean.baseline is None else v)
+    return out
+
+
+def _check_converged(mean: _Mean, x: NDArray, y: NDArray, mask: NDArray) -> None:
+    """ValueError when the fitted curve lost the profile: its area on the record is below
+    1 % of the area of the data above the baseline, or a parameter is not finite."""
+    sig = mean.signal(x)
+    data = np.clip(y - mean.split(x)[2], 0.0, None)
+    a_fit = float(np.trapezoid(np.where(mask, sig, 0.0), mean.t))
+    a_data = float(np.trapezoid(np.where(mask, data, 0.0), mean.t))
+    if not (np.all(np.isfinite(x)) and a_fit >= 0.01 * a_data):
+        raise ValueError(
+            f"fit of {mean.spec.name} did not converge: its curve holds {a_fit:.3g} of the "
+            f"profile's area {a_data:.3g} (parameters {np.round(x, 4).tolist()})"
+        )
+
+
+def fit_raw(
+    t: ArrayLike,
+    y: ArrayLike,
+    model: str | ModelSpec = "ad_open",
+    baseline: float | None = None,
+    keep: ArrayLike | None = None,
+    noise: NoiseModel | None = None,
+    alpha: float = 0.05,
+    lack_of_fit_alpha: float = LACK_OF_FIT_ALPHA,
+    time_limit_s: float = TIME_LIMIT_S,
+    x0: ArrayLike | None = None,
+    screen: bool = True,
+) -> RawFit:
+    """Fit ``model`` to the raw concentration profile (t, y) by GLS with the noise model of the
+    module docstring; ``baseline`` None fits b, a number fixes it; ``keep`` (bool mask) drops
+    outliers from the likelihood and ``screen`` adds those the fit finds (module docstring);
+    ``noise`` given skips its estimation (a common noise model for comparing candidates).
+    Raises FitTimeout past ``time_limit_s``."""
+    t0 = time.perf_counter()
+    deadline = t0 + time_limit_s
+    spec = model if isinstance(model, ModelSpec) else get_model(model)
+    tt = np.asarray(t, dtype=float)
+    yy = np.asarray(y, dtype=float)
+    if tt.ndim != 1 or tt.shape != yy.shape:
+        raise ValueError(f"t and y must be 1-D of equal shape, got {tt.shape} and {yy.shape}")
+    if not (np.all(np.isfinite(tt)) and np.all(np.isfinite(yy))):
+        raise ValueError("t and y must be finite, got NaN or inf")
+    _check_uniform(tt)
+    mask = np.ones(tt.size, bool) if keep is None else np.asarray(keep, bool)
+    mean = _Mean(spec, tt, baseline)
+    p = len(mean.names)
+    n = int(mask.sum())
+    if n <= p + SPLINE_COUNT + 2:
+        raise ValueError(
+            f"need more than {p + SPLINE_COUNT + 2} points to fit {spec.name}, got {n}"
+        )
+    corr_full = pink_correlation(tt.size)
+    bounds = mean.bounds()
+
+    # 1. unweighted robust fit (multi-start, Cauchy loss at the white-noise scale) to start from
+    if x0 is None:
+        best = None
+        scale = max(_difference_scale(yy[mask]), 1e-12 * float(np.ptp(yy)))
+        for x in _starts(mean, yy, mask):
+            r = _least_squares(
+                lambda v: mean(v)[mask] - yy[mask],
+                lambda v: mean.jac(v)[mask],
+                x,
+                bounds,
+                deadline,
+                scale,
+            )
+            if best is None or r.cost < best.cost:
+                best = r
+        x = best.x
+    else:
+        x = np.asarray(x0, dtype=float)
+    # 2. noise estimation (REML) and GLS, screening outliers at falling thresholds (a large
+    # outlier inflates the first noise estimate and would hide the smaller ones)
+    nm = noise
+    for z in (*OUTLIER_STEPS, *(OUTLIER_STEPS[-1],) * OUTLIER_REPEATS) if screen else ():
+        x, nm, chol, res = _gls_round(
+            mean, yy, mask, corr_full, x, nm, noise is None, deadline, tol=1e-6
+        )
+        flagged = _conditional_outliers(chol, yy[mask] - mean(x)[mask], z)
+        if flagged.size:
+            mask = mask.copy()
+            mask[np.nonzero(mask)[0][flagged]] = False
+        elif z == OUTLIER_STEPS[-1]:
+            break
+    x, nm, chol, res = _gls_round(mean, yy, mask, corr_full, x, nm, noise is None, deadline)
+    corr = corr_full[np.ix_(mask, mask)]
+    ym = yy[mask]
+    n = int(mask.sum())
+    _check_converged(mean, x, yy, mask)
+    # 3. covariance, lack of fit, criteria at the final estimate
+    sig = mean.signal(x)[mask]
+    jm = mean.jac(x)[mask]
+    chol = _whitener(nm.covariance(corr, sig))
+    e = linalg.solve_triangular(chol, ym - mean(x)[mask], lower=True, check_finite=False)
+    jw = linalg.solve_triangular(chol, jm, lower=True, check_finite=False)
+    cov = np.linalg.pinv(jw.T @ jw)
+    sens = linalg.solve_triangular(chol.T, jw, lower=False, check_finite=False) @ cov
+    dof = Satterthwaite(sens, corr, sig**2, _reml_information_inverse(chol, jm, corr, sig, nm))
+    chi2 = float(e @ e)
+    logdet = 2.0 * float(np.sum(np.log(np.diag(chol))))
+    ll, aicc, bic = _criteria(chi2, logdet, n, p)
+    alternatives = _alternatives(tt, mean.signal(x), mask)
+    noise_alt = nm
+    if noise is None:
+        design = np.hstack([jm, *alternatives.values()])
+        noise_alt, _ = estimate_noise(ym - mean(x)[mask], design, corr, sig, nm)
+    chol_alt = _whitener(noise_alt.covariance(corr, sig))
+    e_alt = linalg.solve_triangular(chol_alt, ym - mean(x)[mask], lower=True, check_finite=False)
+    lof = _lack_of_fit(e_alt, chol_alt, jm, alternatives, corr, sig, noise_alt)
+    return RawFit(
+        model=spec.name,
+        names=mean.names,
+        params={k: float(v) for k, v in zip(mean.names, x)},
+        cov=cov,
+        noise=nm,
+        lack_of_fit=LackOfFit(lof, lack_of_fit_alpha, noise_alt),
+        chi2=chi2,
+        n=n,
+        loglik=ll,
+        aicc=aicc,
+        bic=bic,
+        success=bool(res.success),
+        message=str(res.message),
+        seconds=time.perf_counter() - t0,
+        fitted=mean(x),
+        dof=dof,
+        excluded=np.nonzero(~mask)[0].astype(np.intp),
+        alpha=alpha,
+    )
+
+
+@dataclass
+class Ranking:
+    """Candidate models fitted with one noise model on the same samples, ranked by BIC, with
+    BIC weights w_i = exp(-dBIC_i / 2) / sum_j exp(-dBIC_j / 2) (Burnham & Anderson 2002,
+    ch. 6.4) and the candidates that failed or ran out of time."""
+
+    fits: list[RawFit]
+    weights: list[float]
+    failed: dict[str, str]
+
+    @property
+    def best(self) -> RawFit:
+        if not self.fits:
+            raise ValueError(f"no candidate model could be fitted: {self.failed!r}")
+        return self.fits[0]
+
+    def as_dict(self) -> dict:
+        b0 = self.fits[0].bic if self.fits else 0.0
+        return {
+            "criterion": "BIC of the GLS likelihood (white + 1/f + proportional noise, common "
+            "to all candidates)",
+            "ranking": [
+                {
+                    "model": f.model,
+                    "parameters": f.k,
+                    "bic": f.bic,
+                    "delta_bic": f.bic - b0,
+                    "aicc": f.aicc,
+                    "weight": w,
+                    "adequate": f.adequate,
+                    "lack_of_fit_p": f.lack_of_fit.p_value,
+                    "seconds": f.seconds,
+                }
+                for f, w in zip(self.fits, self.weights)
+            ],
+            "failed": self.failed,
+        }
+
+
+def fit_candidates(
+    t: ArrayLike,
+    y: ArrayLike,
+    models: list[str],
+    baseline: float | None = None,
+    keep: ArrayLike | None = None,
+    time_limit_s: float = TIME_LIMIT_S,
+) -> Ranking:
+    """Fit every model of ``models`` and rank them by BIC. The first model that fits is the
+    reference: its outlier screen fixes the samples and its noise estimate with the deviation
+    families projected out (free of its own misfit) is the noise model of every candidate, so
+    that the likelihoods compare the same data under the same covariance. Each candidate has
+    ``time_limit_s``; a candidate that fails or runs out of time is listed in ``failed``."""
+    if not models:
+        raise ValueError("models must name at least one model, got []")
+    failed: dict[str, str] = {}
+    ref = None
+    fits = []
+    for m in models:
+        try:
+            if ref is None:
+                ref = fit_raw(t, y, m, baseline, keep, time_limit_s=time_limit_s)
+                mask = np.ones(np.size(t), bool)
+                mask[ref.excluded] = False
+                fits.append(ref)
+            else:
+                fits.append(
+                    fit_raw(
+                        t,
+                        y,
+                        m,
+                        baseline,
+                        mask,
+                        noise=ref.lack_of_fit.noise,
+                        time_limit_s=time_limit_s,
+                        screen=False,
+                    )
+                )
+        except FitTimeout:
+            failed[m] = f"time limit of {time_limit_s:g} s"
+        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
+            failed[m] = str(exc)
+    if ref is not None and len(fits) > 1:
+        # the reference too with the common noise, so that all criteria share it
+        fits[0] = fit_raw(
+            t, y, ref.model, baseline, mask, noise=ref.lack_of_fit.noise, screen=False
+        )
+    fits.sort(key=lambda f: f.bic)
+    if fits:
+        d = np.array([f.bic - fits[0].bic for f in fits])
+        w = np.exp(-0.5 * d)
+        weights = list(w / w.sum())
+    else:
+        weights = []
+    return Ranking(fits, [float(x) for x in weights], failed)
