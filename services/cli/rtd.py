@@ -1,23 +1,78 @@
 """``twin rtd``: analyze tracer profiles, funnel plots, lot boundaries, seed reproduction.
 
-twin rtd analyze FILE.csv [--outliers] [--denoise METHOD|auto] [--truncate SPEC]
-                 [--fit MODEL] --out DIR
-twin rtd funnel FILE.csv [--limit 5] --out DIR
-twin rtd lots FILE.csv [--lower 0.005 --upper 0.995] [--disturbance START END]
-twin rtd reproduce --out DIR [--seed 0]
+twin rtd analyze FILE [--fit MODEL|all|none] [preprocessing] --out DIR
+twin rtd lots FILE [--fit MODEL] [--disturbance START END] [preprocessing] --out DIR
+twin rtd funnel FILE [--compare FILE2] [--fit MODEL] [--limit 5] [preprocessing] --out DIR
+twin rtd reproduce --out DIR [--seed 0] [--repeats 3]
+
+Preprocessing (all three): --outliers/--no-outliers, --denoise METHOD|auto|none,
+--truncate SPEC|none, --baseline auto|none|VALUE, or --raw for none of it. The analyses are
+``twin_core.quality.analysis`` (analyze, lots, funnel_analysis), the reproduction
+``twin_core.quality.reproduce.reproduce_chapter6``; the figures ``twin_core.{rtd,quality}.plots``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 from pathlib import Path
 
 import numpy as np
 
-log = logging.getLogger("twin.rtd")
+
+def _profile_options(q: argparse.ArgumentParser) -> None:
+    q.add_argument("file", type=Path, help="CSV (or ; / tab separated) lab export")
+    q.add_argument("--time-col", default=None, help="time column: name or number (1 = first)")
+    q.add_argument("--conc-col", default=None, help="concentration column: name or number")
+    q.add_argument("--time-unit", default=None, help="s, ms, min or h, if not in the header")
+    q.add_argument(
+        "--conc-unit",
+        default=None,
+        help="%%, %% w/w, mg/g or fraction, if not in the header (converted to %% w/w)",
+    )
+
+
+def _preprocess_options(q: argparse.ArgumentParser) -> None:
+    g = q.add_argument_group("preprocessing (presentation and empirical results)")
+    g.add_argument(
+        "--outliers",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="Hampel outlier replacement (default on)",
+    )
+    g.add_argument(
+        "--denoise", default="auto", help="sa | sa_centred | sg | fft | wavelet | auto | none"
+    )
+    g.add_argument(
+        "--truncate",
+        default="pat",
+        help="pat[:K[@T]] (default pat: mu + 3 sd of the baseline after the tracer) | time:S | "
+        "level:C | rel:F | none",
+    )
+    g.add_argument(
+        "--baseline",
+        default="auto",
+        help="auto (estimated, fitted) | none (0) | VALUE in %% w/w",
+    )
+    g.add_argument("--raw", action="store_true", help="no preprocessing and a baseline of 0")
+
+
+def _fit_options(q: argparse.ArgumentParser, default: str) -> None:
+    from twin_core.rtd.likelihood import TIME_LIMIT_S
+    from twin_core.rtd.models import MODELS
+
+    q.add_argument(
+        "--fit",
+        default=default,
+        help=f"{' | '.join(MODELS)} | all (ranked by BIC) | none (default {default})",
+    )
+    q.add_argument(
+        "--time-limit",
+        type=float,
+        default=TIME_LIMIT_S,
+        help=f"seconds per fitted model (default {TIME_LIMIT_S:g})",
+    )
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -27,69 +82,37 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = p.add_subparsers(dest="rtd_command", metavar="SUBCOMMAND")
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
 
-    def common(q: argparse.ArgumentParser) -> None:
-        q.add_argument("file", type=Path, help="CSV with header 'time [s],concentration [% w/w]'")
-        q.add_argument(
-            "--time-unit", default=None, help="time unit if not in the header (s, ms, min, h)"
-        )
-        q.add_argument("--conc-unit", default=None, help="concentration unit if not in the header")
-
     a = sub.add_parser(
-        "analyze", help="outliers, denoising, truncation, model fit -> JSON + figures"
+        "analyze", help="preprocessing, fit with intervals and lack of fit -> JSON, CSV, figure"
     )
-    common(a)
-    a.add_argument("--outliers", action="store_true", help="Hampel outlier removal first")
-    a.add_argument(
-        "--denoise",
-        default=None,
-        help="sa | sa_centred | sg | fft | wavelet | auto (default: none)",
-    )
-    a.add_argument("--truncate", default=None, help="time:S | level:C | rel:F | pat:K[@T]")
-    a.add_argument(
-        "--fit",
-        default=None,
-        help="ad_open | ad_closed | tis | cstr_pfr | emg | zusatz | ad_open_dead | ad_open_bypass "
-        "| tis_bypass | all",
-    )
-    a.add_argument(
-        "--scale",
-        choices=("free", "fixed"),
-        default="free",
-        help="fit E with a free amplitude (default; robust to a noisy area) or fixed to 1 (seed)",
-    )
-    a.add_argument(
-        "--weighted",
-        action="store_true",
-        help="two-stage weighted fit with the variance model a + b y^2 (proportional noise)",
-    )
+    _profile_options(a)
+    _preprocess_options(a)
+    _fit_options(a, "ad_open")
     a.add_argument("--out", type=Path, required=True)
     a.set_defaults(func=_analyze)
 
     f = sub.add_parser("funnel", help="funnel plot (max %% deviation over duration x intensity)")
-    common(f)
+    _profile_options(f)
+    f.add_argument("--compare", type=Path, default=None, help="second profile: overlay, difference")
     f.add_argument("--limit", type=float, default=5.0, help="deviation limit in %% (default 5)")
     f.add_argument("--durations", default="0:60:200", help="start:stop:count in s")
     f.add_argument("--intensities", default="0:50:200", help="start:stop:count in %% of nominal")
-    f.add_argument("--denoise", default=None, help="denoise first (method name or auto)")
-    f.add_argument(
-        "--compare",
-        type=Path,
-        default=None,
-        help="second profile: overlay and difference of funnels",
-    )
+    _preprocess_options(f)
+    _fit_options(f, "none")
     f.add_argument("--out", type=Path, required=True)
     f.set_defaults(func=_funnel)
 
-    lo = sub.add_parser("lots", help="lot boundaries (0.5 %% / 99.5 %% of F) and diversion window")
-    common(lo)
+    lo = sub.add_parser("lots", help="lot boundaries (0.5 %% / 99.5 %% of F), diversion window")
+    _profile_options(lo)
     lo.add_argument("--lower", type=float, default=0.005)
     lo.add_argument("--upper", type=float, default=0.995)
     lo.add_argument("--disturbance", type=float, nargs=2, metavar=("START", "END"), default=None)
+    _preprocess_options(lo)
+    _fit_options(lo, "none")
+    lo.add_argument("--out", type=Path, required=True)
     lo.set_defaults(func=_lots)
 
-    r = sub.add_parser(
-        "reproduce", help="run the seed's chapter 6 analyses on the synthetic campaign"
-    )
+    r = sub.add_parser("reproduce", help="the seed's chapter 6 analyses on the synthetic campaign")
     r.add_argument("--out", type=Path, required=True)
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--repeats", type=int, default=3, help="repeats per tracer amount (seed: 3)")
@@ -99,10 +122,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 # ------------------------------------------------------------------------------------------------
 
 
-def _load(args: argparse.Namespace):
+def _load(args: argparse.Namespace, path: Path | None = None):
     from twin_core.rtd.profiles import load_csv
 
-    return load_csv(args.file, time_unit=args.time_unit, conc_unit=args.conc_unit)
+    return load_csv(
+        path or args.file,
+        time_unit=args.time_unit,
+        conc_unit=args.conc_unit,
+        time_col=args.time_col,
+        conc_col=args.conc_col,
+    )
+
+
+def _preprocessing(args: argparse.Namespace):
+    from twin_core.rtd.pipeline import Preprocessing
+
+    if args.raw:
+        return Preprocessing.none()
+    off = lambda v: None if v is None or v.strip().lower() == "none" else v  # noqa: E731
+    return Preprocessing(args.outliers, off(args.denoise), off(args.truncate), args.baseline)
+
+
+def _model(args: argparse.Namespace) -> str | None:
+    return None if args.fit.strip().lower() == "none" else args.fit
 
 
 def _range(spec: str, name: str) -> np.ndarray:
@@ -113,14 +155,15 @@ def _range(spec: str, name: str) -> np.ndarray:
         raise ValueError(f"{name} must be start:stop:count, got {spec!r}") from None
 
 
-def _dumps(obj: dict, **kw) -> str:
+def _finish(out: Path, name: str, report: dict, summary: dict) -> int:
+    """Write ``name``.json; print the warnings and a one-line JSON summary on stdout."""
     from twin_core.quality.analysis import json_default
 
-    return json.dumps(obj, default=json_default, **kw)
-
-
-def _write_json(path: Path, obj: dict) -> None:
-    path.write_text(_dumps(obj, indent=2))
+    (out / f"{name}.json").write_text(json.dumps(report, indent=2, default=json_default))
+    for w in report.get("warnings", []):
+        print(f"WARNING: {w}")
+    print(json.dumps({"out": str(out), **summary}, default=json_default))
+    return 0
 
 
 def _fail(exc: Exception) -> int:
@@ -129,79 +172,93 @@ def _fail(exc: Exception) -> int:
 
 
 def _analyze(args: argparse.Namespace) -> int:
-    from twin_core.quality.analysis import analyze_profile
+    from twin_core.quality.analysis import analyze
     from twin_core.rtd.plots import plot_profile
 
     try:
-        prof = _load(args)
-        opts = {k: getattr(args, k) for k in ("outliers", "denoise", "truncate", "fit", "scale")}
-        a = analyze_profile(prof, weighted=args.weighted, **opts)
-    except ValueError as exc:
+        res = analyze(_load(args), _preprocessing(args), _model(args), time_limit_s=args.time_limit)
+        args.out.mkdir(parents=True, exist_ok=True)
+        p, s = res.processed, res.summary
+        cols = {"t_s": p.t, "measured_pct_w_w": p.profile.c, "processed_pct_w_w": p.y}
+        if s is not None:
+            cols["fitted_pct_w_w"] = s.fit.fitted
+        _write_csv(args.out / "profile.csv", cols)
+        plot_profile(p, s, res.warnings).savefig(args.out / "profile.png", dpi=120)
+        report = res.as_dict()
+        summary = {k: report[k] for k in ("adequate", "warnings")}
+        summary |= {"model": s.fit.model, "derived": report["derived"]} if s else {}
+        return _finish(args.out, "report", report, summary)
+    except (ValueError, OSError) as exc:
         return _fail(exc)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    _write_json(out / "report.json", {"file": str(args.file), **a.report})
-    fig = plot_profile(prof.t, prof.c, a.processed, a.e, prof.conc_unit, a.outliers, a.fits)
-    fig.savefig(out / "profile.png", dpi=120)
-    print(_dumps({"out": str(out), "moments": a.report["moments"]}))
-    return 0
+
+
+def _write_csv(path: Path, columns: dict) -> None:
+    import pandas as pd
+
+    pd.DataFrame(columns).to_csv(path, index=False)
 
 
 def _funnel(args: argparse.Namespace) -> int:
-    from twin_core.quality.analysis import profile_funnels
-    from twin_core.rtd.plots import plot_funnel_difference, plot_funnels
-    from twin_core.rtd.profiles import load_csv
+    from twin_core.quality.analysis import funnel_analysis
+    from twin_core.quality.plots import plot_funnel, plot_funnel_difference
 
     try:
-        durations = _range(args.durations, "durations")
-        intensities = _range(args.intensities, "intensities")
-        profiles = [_load(args)]
-        if args.compare is not None:
-            profiles.append(load_csv(args.compare, args.time_unit, args.conc_unit))
-        funnels, res = profile_funnels(profiles, durations, intensities, args.limit, args.denoise)
-    except ValueError as exc:
+        d = _range(args.durations, "durations")
+        h = _range(args.intensities, "intensities")
+        profiles = [_load(args)] + ([_load(args, args.compare)] if args.compare else [])
+        res = funnel_analysis(
+            profiles, _preprocessing(args), _model(args), d, h, args.limit, args.time_limit
+        )
+        args.out.mkdir(parents=True, exist_ok=True)
+        cols = {"duration_s": d}
+        for label, f, band in zip(res.labels, res.funnels, res.bands):
+            cols[f"max_window_fraction[{label}]"] = f.m
+            cols[f"critical_intensity_pct[{label}]"] = f.h_crit
+            if band is not None:
+                cols[f"model_critical_intensity_pct[{label}]"] = band.h_crit
+                cols[f"model_ci_low[{label}]"] = band.lower
+                cols[f"model_ci_high[{label}]"] = band.upper
+        _write_csv(args.out / "funnel.csv", cols)
+        plot_funnel(res).savefig(args.out / "funnel.png", dpi=120)
+        if len(res.funnels) == 2:
+            plot_funnel_difference(res).savefig(args.out / "funnel_difference.png", dpi=120)
+        report = res.as_dict()
+        return _finish(args.out, "funnel", report, report)
+    except (ValueError, OSError) as exc:
         return _fail(exc)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    cols, header = [durations], ["duration_s"]
-    for k, v in funnels.items():
-        cols += [v.m, v.h_crit]
-        header += [f"max_window_fraction[{k}]", f"critical_intensity_pct[{k}]"]
-    table = np.column_stack(cols)
-    np.savetxt(out / "funnel.csv", table, delimiter=",", header=",".join(header), comments="")
-    title = "funnel plot" if len(funnels) == 1 else "funnel overlay"
-    plot_funnels(funnels, title).savefig(out / "funnel.png", dpi=120)
-    if len(funnels) == 2:
-        fig = plot_funnel_difference(*funnels.values())
-        fig.savefig(out / "funnel_difference.png", dpi=120)
-    _write_json(out / "funnel.json", res)
-    print(_dumps(res))
-    return 0
 
 
 def _lots(args: argparse.Namespace) -> int:
-    from twin_core.quality.lots import diversion_window, lot_boundaries
+    from twin_core.quality.analysis import lots
+    from twin_core.quality.plots import plot_lots
 
     try:
-        prof = _load(args)
-        c = np.clip(prof.c, 0, None)
-        lo, hi = lot_boundaries(prof.t, c, args.lower, args.upper)
-        res = {"t_lo_s": lo, "t_hi_s": hi, "lower": args.lower, "upper": args.upper}
-        if args.disturbance:
-            s, e = diversion_window(*args.disturbance, prof.t, c, args.lower, args.upper)
-            res["diversion_window_s"] = [s, e]
-        print(json.dumps(res))
-        return 0
-    except ValueError as exc:
+        res = lots(
+            _load(args),
+            _preprocessing(args),
+            _model(args),
+            args.lower,
+            args.upper,
+            tuple(args.disturbance) if args.disturbance else None,
+            args.time_limit,
+        )
+        args.out.mkdir(parents=True, exist_ok=True)
+        _write_csv(args.out / "lots.csv", res.curves())
+        plot_lots(res).savefig(args.out / "lots.png", dpi=120)
+        report = res.as_dict()
+        summary = {k: v for k, v in report.items() if k != "preprocessing"}
+        return _finish(args.out, "lots", report, summary)
+    except (ValueError, OSError) as exc:
         return _fail(exc)
 
 
 def _reproduce(args: argparse.Namespace) -> int:
+    from twin_core.quality.analysis import json_default
     from twin_core.quality.reproduce import reproduce_chapter6
 
     try:
         meta = reproduce_chapter6(args.out, args.seed, args.repeats, sys.stderr.isatty())
-    except ValueError as exc:
+    except (ValueError, OSError) as exc:
         return _fail(exc)
-    print(_dumps(meta))
+    print(json.dumps(meta, default=json_default))
     return 0

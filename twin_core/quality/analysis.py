@@ -1,149 +1,344 @@
-"""Analysis of measured tracer profiles as one library call each (``twin rtd analyze`` and
-``twin rtd funnel``): the RTD processing of ``twin_core.rtd`` carried on to lot boundaries and
-funnels, hence in this package (``twin_core.rtd`` imports nothing from it).
+"""Analysis of measured tracer profiles as one library call each (``twin rtd analyze / lots /
+funnel``): the RTD processing of ``twin_core.rtd`` carried on to lot boundaries and funnels,
+hence in this package (``twin_core.rtd`` imports nothing from it).
 
-:func:`analyze_profile`: raw moments (seed Eqs. 3-4); Hampel outliers
-(``twin_core.rtd.outliers.hampel``); denoising (``twin_core.rtd.denoise``, with the seed's
-metrics); truncation (``twin_core.rtd.truncation``); E(t), moments, height, FWHM, lot boundaries
-(``twin_core.quality.lots``); model fits compared by AIC (``twin_core.rtd.fitting``) and the
-noise of the residual (``twin_core.rtd.noise.characterize``).
+Each workflow preprocesses the profile (``rtd.pipeline.preprocess``: baseline, outliers,
+denoising, truncation) for the empirical answer and the figure, and, when a model is named,
+fits it to the raw profile (``rtd.pipeline.fit_profile``) for the answer with intervals:
 
-:func:`profile_funnels`: the funnel plot of each profile's E(t)
-(``twin_core.quality.funnel.funnel``: max outlet deviation of rectangular disturbances, seed
-6.1.4.3.2) and, for two, their comparison.
+- lot boundaries (seed 6.1.4.3.1): the ``lower`` / ``upper`` quantiles of F of the processed
+  profile, and of the fitted model with intervals (``rtd.derived``);
+- funnel (seed 6.2.2.2): the feasible boundary h_crit(d) = limit / M(d) of the processed
+  profile, and of the fitted model with a pointwise interval band and an interval for the
+  feasible fraction of the grid.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["ProfileAnalysis", "analyze_profile", "json_default", "profile_funnels"]
+from twin_core.quality.funnel import FunnelResult, compare_funnels, funnel, max_window_fraction
+from twin_core.quality.lots import lot_boundaries, quantile_time
+from twin_core.rtd.convolution import cumulative
+from twin_core.rtd.derived import Estimate, derived, model_curve
+from twin_core.rtd.likelihood import TIME_LIMIT_S
+from twin_core.rtd.pipeline import FitSummary, Preprocessing, Processed, fit_profile, preprocess
+from twin_core.rtd.profiles import Profile, e_curve
+
+__all__ = [
+    "FunnelBand",
+    "Analysis",
+    "LotsAnalysis",
+    "FunnelAnalysis",
+    "lot_estimates",
+    "funnel_band",
+    "analyze",
+    "lots",
+    "funnel_analysis",
+    "FUNNEL_REPORT_DURATIONS",
+    "json_default",
+]
+
+#: durations (s) at which reports give the funnel limit with its interval
+FUNNEL_REPORT_DURATIONS = (5.0, 10.0, 20.0, 30.0, 60.0)
+#: most points of the grid on which the model's funnel is evaluated
+FUNNEL_GRID_POINTS = 2001
+
+
+def lot_estimates(summary: FitSummary, lower: float = 0.005, upper: float = 0.995) -> dict:
+    """Lot boundaries (s) of the fitted model with intervals: the times where its F reaches
+    ``lower`` and ``upper``."""
+    lo, hi = derived(
+        summary.fit,
+        summary.grid,
+        lambda t, e: [quantile_time(t, e, lower), quantile_time(t, e, upper)],
+    )
+    return {"t_lo_s": lo, "t_hi_s": hi}
 
 
 @dataclass
-class ProfileAnalysis:
-    """The report of :func:`analyze_profile` (JSON-able with numpy values) and its curves."""
+class FunnelBand:
+    """Feasible boundary h_crit(d) of a fitted model with its pointwise interval, and the
+    feasible fraction of the grid with its interval."""
 
-    report: dict[str, Any]
-    processed: np.ndarray
-    e: np.ndarray
-    outliers: list[int] = field(default_factory=list)
-    fits: list[Any] = field(default_factory=list)
+    durations: NDArray[np.float64]
+    h_crit: NDArray[np.float64]
+    lower: NDArray[np.float64]
+    upper: NDArray[np.float64]
+    feasible_fraction: Estimate
+    limit: float
 
-
-def analyze_profile(
-    prof: Any,
-    *,
-    outliers: bool = False,
-    denoise: str | None = None,
-    truncate: str | None = None,
-    fit: str | None = None,
-    scale: str = "free",
-    weighted: bool = False,
-) -> ProfileAnalysis:
-    """Outliers, denoising, truncation, E(t) and its figures of merit, fits (module docstring).
-
-    ``prof``: a ``twin_core.rtd.profiles.Profile``; ``denoise``: a method name or ``auto``;
-    ``truncate``: ``time:S | level:C | rel:F | pat:K[@T]``; ``fit``: a model name or ``all``;
-    ``scale``: ``free`` amplitude or ``fixed`` to 1; ``weighted``: two-stage fit with the
-    variance model a + b y^2. Bad options raise ValueError naming them.
-    """
-    from twin_core.quality.lots import lot_boundaries
-    from twin_core.rtd import denoise as D
-    from twin_core.rtd.fitting import compare_models
-    from twin_core.rtd.fitting import fit as fit_model
-    from twin_core.rtd.metrics import denoise_metrics, fwhm
-    from twin_core.rtd.models import MODELS
-    from twin_core.rtd.noise import characterize
-    from twin_core.rtd.outliers import hampel
-    from twin_core.rtd.profiles import e_curve, moments
-    from twin_core.rtd.truncation import parse_spec
-
-    t, y0 = prof.t, prof.c
-    report: dict[str, Any] = {"n": int(t.size), "conc_unit": prof.conc_unit}
-    report["moments_raw"] = moments(t, y0).__dict__
-    y = y0.copy()
-    idx: list[int] = []
-    if outliers:
-        r = hampel(y, t=t)
-        y, idx = r.y, list(r.indices)
-        report["outliers"] = {
-            "count": r.count,
-            "indices": r.indices,
-            "times": t[r.indices],
-            "original": r.original,
+    def at(self, duration: float) -> dict:
+        i = int(np.argmin(np.abs(self.durations - duration)))
+        return {
+            "duration_s": float(self.durations[i]),
+            "critical_intensity_pct": float(self.h_crit[i]),
+            "ci": [float(self.lower[i]), float(self.upper[i])],
         }
-    y_clean = y.copy()
-    if denoise:
-        steps = np.diff(t)
-        if np.ptp(steps) > 0.01 * np.median(steps):
-            raise ValueError("denoise needs uniformly sampled t (steps vary by more than 1 %)")
-        d = D.denoise(y, denoise)
-        y = d.y
-        report["denoise"] = {
-            "method": d.method,
-            "params": d.params,
-            "risk": d.risk,
-            "metrics": denoise_metrics(t, y_clean, y),
+
+    def as_dict(self) -> dict:
+        ds = [
+            d for d in FUNNEL_REPORT_DURATIONS if self.durations.min() < d <= self.durations.max()
+        ]
+        return {
+            "limit": self.limit,
+            "feasible_fraction": self.feasible_fraction.as_dict(),
+            "critical_intensity": [self.at(d) for d in ds],
         }
-    if truncate:
-        spec = parse_spec(truncate)
-        y = spec.apply(t, y)
-        report["truncate"] = {"kind": spec.kind, "value": spec.value, "zeroed": int(np.sum(y == 0))}
-    e = e_curve(t, y)
-    report["moments"] = moments(t, y).__dict__
-    if not report["moments"]["variance"] > 0 or np.min(y) < -0.01 * np.max(y):
-        report["moments_note"] = (
-            "negative values (baseline noise/offset) distort the moments and the area; "
-            "consider --truncate pat:3"
-        )
-    report["height"] = float(np.max(y))
-    report["fwhm_s"] = fwhm(t, y)
-    report["lot_boundaries_s"] = list(lot_boundaries(t, np.clip(y, 0, None)))
-    fits: list[Any] = []
-    if fit:
-        names = list(MODELS) if fit == "all" else [fit]
-        sig = "auto" if weighted else None
-        fits = (
-            compare_models(t, e, names, scale=scale, sigma=sig)
-            if len(names) > 1
-            else [fit_model(t, e, names[0], scale=scale, sigma=sig)]
-        )
-        report["fits"] = [f.as_dict() for f in fits]
-        if fits:
-            resid_fit = fits[0].fitted * np.trapezoid(y, t)  # back to concentration units
-            report["noise"] = characterize(t, y_clean, resid_fit).as_dict()
-    return ProfileAnalysis(report, y, e, idx, fits)
 
 
-def profile_funnels(
-    profiles: Sequence[Any],
-    durations: np.ndarray,
-    intensities: np.ndarray,
+def _funnel_grid(grid: NDArray) -> NDArray[np.float64]:
+    step = max(1, int(np.ceil(grid.size / FUNNEL_GRID_POINTS)))
+    return grid[::step]
+
+
+def funnel_band(
+    summary: FitSummary,
+    durations: ArrayLike,
+    intensities: ArrayLike,
     limit: float = 5.0,
-    denoise: str | None = None,
-) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The funnel of each profile's E(t) by label (its name, else ``profile i``) and the
-    summary: each funnel's figures of merit and, for two profiles, their comparison."""
-    from twin_core.quality.funnel import compare_funnels, funnel
-    from twin_core.rtd import denoise as D
-    from twin_core.rtd.profiles import e_curve
+) -> FunnelBand:
+    """Funnel limits of the fitted model with intervals (module docstring); h_crit is infinite
+    at d = 0 and has no interval there."""
+    d = np.asarray(durations, dtype=float)
+    h = np.asarray(intensities, dtype=float)
+    grid = _funnel_grid(summary.grid)
+    pos = d > 0
+    est = derived(summary.fit, grid, lambda t, e: limit / max_window_fraction(t, e, d[pos]))
+    h_crit = np.full(d.size, np.inf)
+    lower = np.full(d.size, np.inf)
+    upper = np.full(d.size, np.inf)
+    h_crit[pos] = [x.value for x in est]
+    lower[pos] = [x.ci[0] for x in est]
+    upper[pos] = [x.ci[1] for x in est]
+    frac = derived(
+        summary.fit,
+        grid,
+        lambda t, e: funnel(t, e, d, h, limit).feasible_fraction,
+        log_scale=False,
+    )[0]
+    return FunnelBand(d, h_crit, lower, upper, frac, float(limit))
 
-    funnels: dict[str, Any] = {}
+
+@dataclass
+class Analysis:
+    """``analyze``: the processed profile, the empirical lot boundaries and, with a model, its
+    fit, lot boundaries and funnel limits with intervals."""
+
+    processed: Processed
+    lots_empirical: tuple[float, float]
+    summary: FitSummary | None = None
+    lots_model: dict | None = None
+    funnel: FunnelBand | None = None
+    warnings: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        p = self.processed
+        out: dict = {
+            "file": p.profile.name,
+            "n": int(p.t.size),
+            "columns": {
+                "time": p.profile.meta.get("time_column"),
+                "concentration": p.profile.meta.get("conc_column"),
+            },
+            "units": {
+                "time": "s",
+                "concentration": "% w/w",
+                "source_time": p.profile.meta.get("source_time_unit"),
+                "source_concentration": p.profile.meta.get("source_conc_unit"),
+                "concentration_factor": p.profile.meta.get("conc_factor_to_pct_w_w"),
+            },
+            "preprocessing": p.as_dict(),
+            "lot_boundaries_empirical_s": list(self.lots_empirical),
+            "warnings": self.warnings,
+            "adequate": None if self.summary is None else self.summary.fit.adequate,
+        }
+        if self.summary is not None:
+            out.update(self.summary.as_dict())
+            out["warnings"] = self.warnings
+            out["derived"]["lot_boundaries"] = {k: v.as_dict() for k, v in self.lots_model.items()}
+            if self.funnel is not None:
+                out["derived"]["funnel"] = self.funnel.as_dict()
+        return out
+
+
+def _empirical_lots(processed: Processed, lower: float, upper: float) -> tuple[float, float]:
+    return lot_boundaries(processed.t, np.clip(processed.y, 0.0, None), lower, upper)
+
+
+def analyze(
+    profile: Profile,
+    opts: Preprocessing | None = None,
+    model: str | None = "ad_open",
+    lower: float = 0.005,
+    upper: float = 0.995,
+    durations: ArrayLike | None = None,
+    intensities: ArrayLike | None = None,
+    limit: float = 5.0,
+    time_limit_s: float = TIME_LIMIT_S,
+) -> Analysis:
+    """Preprocess, and with ``model`` (a name or ``all``) fit the raw profile: parameters,
+    adequacy, moments, lot boundaries and funnel limits with intervals."""
+    opts = opts or Preprocessing()
+    processed = preprocess(profile, opts)
+    result = Analysis(processed, _empirical_lots(processed, lower, upper))
+    result.warnings = list(processed.notes)
+    if model:
+        summary = fit_profile(profile, model, opts.baseline, time_limit_s)
+        result.summary = summary
+        result.warnings += summary.warnings
+        result.lots_model = lot_estimates(summary, lower, upper)
+        d = np.linspace(0.0, 60.0, 200) if durations is None else np.asarray(durations, float)
+        h = np.linspace(0.0, 50.0, 200) if intensities is None else np.asarray(intensities, float)
+        result.funnel = funnel_band(summary, d, h, limit)
+    return result
+
+
+@dataclass
+class LotsAnalysis:
+    """``lots``: empirical and model lot boundaries and the diversion window of a disturbance
+    (the conservative window spans the outer interval ends)."""
+
+    analysis: Analysis
+    lower: float
+    upper: float
+    disturbance: tuple[float, float] | None = None
+
+    def diversion(self) -> dict | None:
+        if self.disturbance is None:
+            return None
+        ts, te = self.disturbance
+        if not (np.isfinite(ts) and np.isfinite(te)) or te < ts:
+            raise ValueError(f"disturbance must be START <= END, got {ts!r}, {te!r}")
+        lo, hi = self.analysis.lots_empirical
+        t0 = float(self.analysis.processed.t[0])
+        out = {"empirical_s": [ts + lo - t0, te + hi - t0]}
+        if self.analysis.lots_model is not None:
+            m = self.analysis.lots_model
+            out["model_s"] = [ts + m["t_lo_s"].value - t0, te + m["t_hi_s"].value - t0]
+            out["conservative_s"] = [ts + m["t_lo_s"].ci[0] - t0, te + m["t_hi_s"].ci[1] - t0]
+        return out
+
+    def curves(self) -> dict[str, NDArray[np.float64]]:
+        """F(t) of the processed profile and, with a model, of the model on the record."""
+        a = self.analysis
+        t = a.processed.t
+        f = cumulative(t, np.clip(a.processed.y, 0.0, None))
+        out = {"t_s": t, "F_processed": f / f[-1]}
+        if a.summary is not None:
+            grid = a.summary.grid
+            fm = cumulative(grid, model_curve(a.summary.fit, grid))
+            out["F_model"] = np.interp(t, grid, fm / fm[-1])
+        return out
+
+    def as_dict(self) -> dict:
+        a = self.analysis
+        out = {
+            "lower": self.lower,
+            "upper": self.upper,
+            "t_lo_s": a.lots_empirical[0],
+            "t_hi_s": a.lots_empirical[1],
+            "preprocessing": a.processed.as_dict(),
+            "warnings": a.warnings,
+        }
+        if a.lots_model is not None:
+            out["model"] = a.summary.fit.model
+            out["adequate"] = a.summary.fit.adequate
+            out["model_lots"] = {k: v.as_dict() for k, v in a.lots_model.items()}
+        div = self.diversion()
+        if div is not None:
+            out["diversion_window"] = div
+        return out
+
+
+def lots(
+    profile: Profile,
+    opts: Preprocessing | None = None,
+    model: str | None = None,
+    lower: float = 0.005,
+    upper: float = 0.995,
+    disturbance: tuple[float, float] | None = None,
+    time_limit_s: float = TIME_LIMIT_S,
+) -> LotsAnalysis:
+    """Lot boundaries of the preprocessed profile and, with ``model``, of the fitted model with
+    intervals; the diversion window of an inlet disturbance [start, end]."""
+    opts = opts or Preprocessing()
+    processed = preprocess(profile, opts)
+    a = Analysis(processed, _empirical_lots(processed, lower, upper))
+    a.warnings = list(processed.notes)
+    if model:
+        a.summary = fit_profile(profile, model, opts.baseline, time_limit_s)
+        a.warnings += a.summary.warnings
+        a.lots_model = lot_estimates(a.summary, lower, upper)
+    result = LotsAnalysis(a, lower, upper, disturbance)
+    result.diversion()  # validates the disturbance
+    return result
+
+
+@dataclass
+class FunnelAnalysis:
+    """``funnel``: the funnel of each preprocessed profile, their comparison (two profiles)
+    and, with a model, the band of the fitted model's boundary."""
+
+    labels: list[str]
+    processed: list[Processed]
+    funnels: list[FunnelResult]
+    bands: list[FunnelBand | None]
+    summaries: list[FitSummary | None]
+    warnings: list[str] = field(default_factory=list)
+
+    def comparison(self) -> dict | None:
+        return compare_funnels(*self.funnels) if len(self.funnels) == 2 else None
+
+    def as_dict(self) -> dict:
+        out: dict = {"funnels": {}, "warnings": self.warnings}
+        for label, p, f, b, s in zip(
+            self.labels, self.processed, self.funnels, self.bands, self.summaries
+        ):
+            entry = {**f.as_dict(), "preprocessing": p.as_dict()}
+            if b is not None:
+                entry["model"] = s.fit.model
+                entry["adequate"] = s.fit.adequate
+                entry["model_funnel"] = b.as_dict()
+            out["funnels"][label] = entry
+        comp = self.comparison()
+        if comp is not None:
+            out["comparison"] = comp
+        return out
+
+
+def funnel_analysis(
+    profiles: list[Profile],
+    opts: Preprocessing | None = None,
+    model: str | None = None,
+    durations: ArrayLike | None = None,
+    intensities: ArrayLike | None = None,
+    limit: float = 5.0,
+    time_limit_s: float = TIME_LIMIT_S,
+) -> FunnelAnalysis:
+    """Funnels of one or two profiles after preprocessing; with ``model`` the band of each
+    fitted model's feasible boundary."""
+    opts = opts or Preprocessing()
+    d = np.linspace(0.0, 60.0, 200) if durations is None else np.asarray(durations, float)
+    h = np.linspace(0.0, 50.0, 200) if intensities is None else np.asarray(intensities, float)
+    labels, procs, funnels, bands, sums, warnings = [], [], [], [], [], []
     for i, prof in enumerate(profiles):
-        y = prof.c if not denoise else D.denoise(prof.c, denoise).y
         label = prof.name or f"profile {i + 1}"
-        if label in funnels:
+        if label in labels:
             label = f"{label} ({i + 1})"
-        funnels[label] = funnel(prof.t, e_curve(prof.t, y), durations, intensities, limit)
-    res: dict[str, Any] = {"funnels": {k: v.as_dict() for k, v in funnels.items()}}
-    if len(funnels) == 2:
-        res["comparison"] = compare_funnels(*funnels.values())
-    return funnels, res
+        p = preprocess(prof, opts)
+        f = funnel(p.t, e_curve(p.t, p.y), d, h, limit)
+        s = fit_profile(prof, model, opts.baseline, time_limit_s) if model else None
+        warnings += [f"{label}: {w}" for w in p.notes + (s.warnings if s else [])]
+        labels.append(label)
+        procs.append(p)
+        funnels.append(f)
+        sums.append(s)
+        bands.append(funnel_band(s, d, h, limit) if s else None)
+    return FunnelAnalysis(labels, procs, funnels, bands, sums, warnings)
 
 
 def json_default(o: object) -> object:

@@ -1,96 +1,27 @@
-"""Figures of the RTD analyses (matplotlib ``Figure`` objects; the caller saves them): a processed
-tracer profile with its fits, funnel plots and their difference, and the figures of the seed's
-chapter 6 reproduction (Fig. 6.10 / Table 6.1, Tables 6.2-6.3, Fig. 6.16, Fig. 6.17). No pyplot
-state is used."""
+"""Figures of the RTD analyses (matplotlib ``Figure`` objects; the caller saves them): a measured
+tracer profile with its preprocessing, the model fitted to the raw profile and its lack-of-fit
+verdict, and the figures of the seed's chapter 6 reproduction (Fig. 6.10 / Table 6.1, Tables
+6.2-6.3, Fig. 6.16, Fig. 6.17, the raw-data intervals of every run). No pyplot state is used."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from twin_core.rtd.pipeline import FitSummary, Processed
+
 __all__ = [
     "plot_denoising",
     "plot_funnel_cases",
-    "plot_funnel_difference",
-    "plot_funnels",
+    "plot_intervals",
     "plot_oos_curve",
     "plot_profile",
     "plot_truncation",
 ]
-
-
-def plot_profile(
-    t: np.ndarray,
-    measured: np.ndarray,
-    processed: np.ndarray,
-    e: np.ndarray,
-    conc_unit: str,
-    outliers: Sequence[int] = (),
-    fits: Sequence[Any] = (),
-) -> Figure:
-    """Measured and processed profile (outliers marked), the processed E(t) and up to three
-    fitted models (``twin_core.rtd.fitting`` results, with their AIC)."""
-    fig = Figure(figsize=(8, 7), layout="tight")
-    ax = fig.subplots(2, 1, sharex=True)
-    ax[0].plot(t, measured, ".", ms=3, color="0.6", label="measured")
-    if len(outliers):
-        idx = np.asarray(outliers)
-        ax[0].plot(t[idx], measured[idx], "rx", label="outliers")
-    ax[0].plot(t, processed, "C0", lw=1.5, label="processed")
-    ax[0].set_ylabel(f"C ({conc_unit})")
-    ax[0].legend()
-    ax[1].plot(t, e, "C0", label="E(t) processed")
-    for f in list(fits)[:3]:
-        ax[1].plot(t, f.fitted, "--", label=f"{f.model} (AIC {f.aic:.0f})")
-    ax[1].set_xlabel("t (s)")
-    ax[1].set_ylabel("E (1/s)")
-    ax[1].legend()
-    return fig
-
-
-def plot_funnels(funnels: Mapping[str, Any], title: str) -> Figure:
-    """Funnel plot (max % deviation over duration x intensity, one funnel) or the feasible-region
-    boundaries of several (``twin_core.quality.funnel.FunnelResult``)."""
-    fig = Figure(figsize=(6.5, 5), layout="tight")
-    ax = fig.subplots()
-    first = next(iter(funnels.values()))
-    if len(funnels) == 1:
-        cs = ax.contourf(
-            first.durations, first.intensities, first.max_dev.T, levels=20, cmap="viridis"
-        )
-        fig.colorbar(cs, ax=ax, label="max deviation (%)")
-    for i, (label, f) in enumerate(funnels.items()):
-        ax.plot(
-            f.durations,
-            np.clip(f.h_crit, 0, f.intensities.max()),
-            color=f"C{i + 1}",
-            lw=2,
-            label=f"{label}",
-        )
-    ax.set_xlabel("disturbance duration (s)")
-    ax.set_ylabel("disturbance intensity (% of nominal)")
-    ax.set_ylim(first.intensities.min(), first.intensities.max())
-    ax.set_title(title)
-    ax.legend(title=f"limit {first.limit:g} %", fontsize=8)
-    return fig
-
-
-def plot_funnel_difference(a: Any, b: Any) -> Figure:
-    """Max deviation of the second funnel minus the first, on their common grid."""
-    fig = Figure(figsize=(6.5, 5), layout="tight")
-    ax = fig.subplots()
-    diff = (b.max_dev - a.max_dev).T
-    lim = float(np.max(np.abs(diff))) or 1.0
-    cs = ax.pcolormesh(a.durations, a.intensities, diff, cmap="RdBu_r", vmin=-lim, vmax=lim)
-    fig.colorbar(cs, ax=ax, label="max deviation, second - first (%)")
-    ax.set_xlabel("disturbance duration (s)")
-    ax.set_ylabel("disturbance intensity (% of nominal)")
-    ax.set_title("funnel difference")
-    return fig
 
 
 def plot_denoising(
@@ -174,4 +105,74 @@ def plot_oos_curve(summary: pd.DataFrame) -> Figure:
     ax.set_xlabel("truncation level (% of peak height)")
     ax.set_ylabel("increase of OOS tablets (percentage points)")
     ax.legend()
+    return fig
+
+
+def _noise_sd(summary: FitSummary) -> np.ndarray:
+    """Pointwise sd of the estimated noise: sqrt(s_w^2 + s_p^2 + k^2 s^2), s = fitted - baseline."""
+    f = summary.fit
+    n = f.noise
+    signal = f.fitted - f.params.get("baseline", 0.0)
+    return np.sqrt(n.white_var + n.pink_var + n.prop_var * signal**2)
+
+
+def plot_profile(processed: Processed, summary: FitSummary | None, warnings: list[str]) -> Figure:
+    """Top: the measured profile, Hampel outliers, the processed profile and the model fitted
+    to the raw profile (with its baseline); samples the fit left out are circled. Bottom: the
+    residual of the fit with +/- 2 sd of the estimated noise and the lack-of-fit verdict. A
+    warning (an inadequate fit) is written in red on the figure."""
+    fig = Figure(figsize=(8, 7))
+    ax = fig.subplots(2, 1, sharex=True, height_ratios=(3, 2))
+    t, raw = processed.t, processed.profile.c
+    ax[0].plot(t, raw, ".", ms=3, color="0.6", label="measured")
+    if processed.outliers is not None and processed.outliers.count:
+        idx = processed.outliers.indices
+        ax[0].plot(t[idx], raw[idx], "rx", label="Hampel outliers")
+    ax[0].plot(t, processed.y + processed.baseline, "C0", lw=1.2, label="processed (+ baseline)")
+    if summary is not None:
+        f = summary.fit
+        verdict = "adequate" if f.adequate else "INADEQUATE"
+        ax[0].plot(t, f.fitted, "C3--", lw=1.5, label=f"{f.model} fit ({verdict})")
+        if f.excluded.size:
+            ax[0].plot(
+                t[f.excluded], raw[f.excluded], "o", mfc="none", mec="C3", label="left out of fit"
+            )
+        keep = np.ones(t.size, bool)
+        keep[f.excluded] = False
+        sd = _noise_sd(summary)
+        ax[1].plot(t[keep], (raw - f.fitted)[keep], ".", ms=3, color="C3")
+        ax[1].fill_between(t, -2 * sd, 2 * sd, color="0.85", label="+/- 2 sd of the noise")
+        ax[1].axhline(0, color="k", lw=0.6)
+        tests = ", ".join(f"{x.name} p={x.p_value:.2g}" for x in f.lack_of_fit.tests)
+        ax[1].set_title(
+            f"lack of fit: {verdict} (p = {f.lack_of_fit.p_value:.2g}; {tests})",
+            fontsize=9,
+            color="k" if f.adequate else "red",
+        )
+        ax[1].legend(fontsize=8)
+    ax[0].set_ylabel(f"C ({processed.profile.conc_unit})")
+    ax[0].legend(fontsize=8)
+    ax[1].set_xlabel("t (s)")
+    ax[1].set_ylabel("residual")
+    for i, w in enumerate(warnings[:3]):
+        fig.text(0.01, 0.995 - 0.025 * i, "WARNING: " + w[:150], color="red", fontsize=7, va="top")
+    fig.tight_layout(rect=(0, 0, 1, 0.97 if warnings else 1))
+    return fig
+
+
+def plot_intervals(table: pd.DataFrame) -> Figure:
+    """Raw-data 95 % intervals of each run (``quality.reproduce.interval_table``) against its
+    truth: AD parameters, mean residence time and the upper lot boundary."""
+    keys = ("tau_d", "tau", "pe", "mrt", "t_hi_s")
+    fig = Figure(figsize=(15, 4), layout="tight")
+    axs = fig.subplots(1, len(keys))
+    y = np.arange(len(table))
+    for ax, k in zip(axs, keys):
+        v = table[k].to_numpy()
+        err = [v - table[f"{k}_lo"].to_numpy(), table[f"{k}_hi"].to_numpy() - v]
+        ax.errorbar(v, y, xerr=err, fmt="o", ms=3, label="estimate, 95 % CI")
+        ax.plot(table[f"{k}_true"], y, "kx", label="truth")
+        ax.set_title(k)
+        ax.set_yticks(y, table.run, fontsize=7)
+    axs[0].legend(fontsize=7)
     return fig

@@ -30,6 +30,7 @@ from twin_core.rtd.profiles import e_curve
 from twin_core.rtd.stats import compare_groups
 from twin_core.rtd.synthetic import SyntheticRun
 from twin_core.rtd.truncation import (
+    SEED_PAT_BASELINE_S,
     pat_level,
     truncate_level,
     truncate_relative,
@@ -122,7 +123,7 @@ def truncation_table(
     for run in runs:
         y = D.denoise(clean(run), "wavelet").y
         truth = run.c_true
-        lvl_pat, mu, sd = pat_level(run.t, clean(run), pat_k)
+        lvl_pat, mu, sd = pat_level(run.t, clean(run), pat_k, SEED_PAT_BASELINE_S)
         cases = [
             (f"{lv:g}", truncate_relative(y, lv), truncate_relative(truth, lv)) for lv in levels
         ]
