@@ -1,0 +1,325 @@
+"""Coverage, adequacy and model-selection campaign of the RTD fits (docs/rtd.md).
+
+Run: python benchmarks/rtd_coverage.py [--profiles 100] [--selection 25] [--out DIR]
+[--jobs 2]. Resumable: every simulated profile is one line of DIR/coverage.jsonl or
+DIR/selection.jsonl; a rerun skips the lines already there and prints the tables.
+
+Truths come from code paths independent of ``rtd.models`` (``rtd.virtual``): axial
+dispersion from the PDE, tanks in series from ``scipy.stats.gamma``, an exponentially tailed
+peak from a numerical convolution, a stagnant zone from the two-zone PDE. Each truth is
+measured with the seed's PAT noise (white 0.10, 1/f 0.07 % w/w, 3 % proportional, offset,
+1 % outliers of 1-3 % w/w) and with twice the white, 1/f and proportional parts; pulses of
+10 / 7.5 / 6 / 5 g (seed 6.1.2).
+
+Per profile and noise setting:
+- coverage: the generating family is fitted by ``quality.analysis.analyze`` (default
+  preprocessing, raw-data GLS fit); each nominal 95 % interval (parameters, mean residence
+  time, variance, lot boundaries, feasible fraction and h_crit at 10 s) covers the truth or not;
+  the documented pipeline before (outliers, auto denoise, PAT truncation, ``fitting.fit`` on E)
+  is scored on the same profile for comparison;
+- adequacy: AD (``ad_open``) fitted to every profile; share flagged inadequate;
+- selection (``--selection`` profiles of some truths): every registered model ranked by BIC;
+  the selected model's family and parameter count, the time of the slowest candidate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass
+from multiprocessing import Pool
+from pathlib import Path
+
+import numpy as np
+from machine import describe
+from tqdm import tqdm
+
+from twin_core.quality.funnel import funnel, max_window_fraction
+from twin_core.quality.lots import quantile_time
+from twin_core.quality.analysis import analyze
+from twin_core.rtd import virtual as V
+from twin_core.rtd.denoise import denoise
+from twin_core.rtd.fitting import fit
+from twin_core.rtd.likelihood import fit_candidates
+from twin_core.rtd.models import MODELS, get_model
+from twin_core.rtd.outliers import hampel
+from twin_core.rtd.pipeline import Preprocessing, fit_profile
+from twin_core.rtd.profiles import e_curve, from_arrays
+from twin_core.rtd.truncation import truncate_pat
+
+T = np.arange(0.0, 251.0)
+FINE = np.linspace(0.0, 1000.0, 40001)
+DURATIONS = np.linspace(0.0, 60.0, 200)
+INTENSITIES = np.linspace(0.0, 50.0, 200)
+NOISE = {"seed": V.SEED_NOISE, "2x": V.SEED_NOISE.scaled(2.0)}
+
+
+@dataclass(frozen=True)
+class Truth:
+    """A virtual system: how its E is computed, its parameters in the fitted family's terms,
+    the tracer amount and the family fitted for coverage (None: adequacy only)."""
+
+    name: str
+    kind: str
+    args: tuple[float, ...]
+    amount_g: float
+    family: str | None
+    params: dict[str, float]
+
+    def e(self, t: np.ndarray) -> np.ndarray:
+        if self.kind == "pde":
+            return V.dispersion_pde(t, *self.args)
+        if self.kind == "gamma":
+            return V.tanks_gamma(t, *self.args)
+        return V.emg_convolution(t, *self.args)
+
+
+AD = (11.92, 16.37, 7.67)
+TRUTHS = [
+    *[
+        Truth(f"ad_{g:g}g", "pde", AD, g, "ad_open", dict(zip(("tau_d", "tau", "pe"), AD)))
+        for g in (10.0, 7.5, 6.0, 5.0)
+    ],
+    Truth(
+        "ad_pe25", "pde", (10.0, 18.0, 25.0), 10.0, "ad_open", {"tau_d": 10, "tau": 18, "pe": 25}
+    ),
+    Truth("ad_pe3", "pde", (8.0, 20.0, 3.0), 7.5, "ad_open", {"tau_d": 8, "tau": 20, "pe": 3}),
+    Truth("tis_n4", "gamma", (8.0, 24.0, 4.0), 10.0, "tis", {"tau_d": 8, "tau": 24, "n": 4}),
+    Truth("emg", "emg", (22.0, 4.0, 12.0), 7.5, "emg", {"mu": 22, "sigma": 4, "tau_e": 12}),
+    Truth("stagnant", "pde", (10.0, 14.0, 10.0, 0.3, 25.0), 10.0, None, {}),
+    Truth("stagnant_5g", "pde", (10.0, 14.0, 10.0, 0.3, 25.0), 5.0, None, {}),
+    Truth("stagnant_weak", "pde", (10.0, 14.0, 10.0, 0.2, 50.0), 10.0, None, {}),
+]
+SELECTION = ("ad_10g", "ad_5g", "tis_n4", "emg", "stagnant")
+
+
+def truth_quantities(truth: Truth) -> dict[str, float]:
+    """Derived quantities of the truth on a fine, long grid (same definitions as the fit's)."""
+    e = truth.e(FINE)
+    area = np.trapezoid(e, FINE)
+    mean = float(np.trapezoid(FINE * e, FINE) / area)
+    var = float(np.trapezoid((FINE - mean) ** 2 * e, FINE) / area)
+    grid = FINE[::10]
+    eg = e[::10]
+    d10 = DURATIONS[int(np.argmin(np.abs(DURATIONS - 10.0)))]
+    return {
+        "mean_residence_time_s": mean,
+        "variance_s2": var,
+        "t_lo_s": quantile_time(FINE, e, 0.005),
+        "t_hi_s": quantile_time(FINE, e, 0.995),
+        "feasible_fraction": funnel(grid, eg, DURATIONS, INTENSITIES, 5.0).feasible_fraction,
+        "h_crit_10s": float(5.0 / max_window_fraction(grid, eg, [d10])[0]),
+    }
+
+
+_CACHE: dict[str, tuple[np.ndarray, dict]] = {}
+
+
+def _truth_data(truth: Truth) -> tuple[np.ndarray, dict]:
+    if truth.name not in _CACHE:
+        _CACHE[truth.name] = (
+            V.pulse_concentration(truth.e(T), truth.amount_g),
+            truth_quantities(truth),
+        )
+    return _CACHE[truth.name]
+
+
+def _rng(truth: str, noise: str, i: int) -> np.random.Generator:
+    key = [ord(ch) for ch in f"{truth}|{noise}"]
+    return np.random.default_rng([*key, i])
+
+
+def _inside(ci: list[float] | tuple[float, float], value: float) -> bool:
+    return bool(ci[0] <= value <= ci[1])
+
+
+def _old_pipeline(y: np.ndarray, truth: Truth) -> dict[str, bool] | None:
+    """The documented pipeline before: Hampel, auto denoise, PAT truncation, fit of E."""
+    try:
+        d = denoise(hampel(y, t=T).y, "auto").y
+        tr = truncate_pat(T, d, t_baseline=120.0)
+        r = fit(T, e_curve(T, tr), truth.family, scale="free")
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    return {k: _inside(r.ci[k], v) for k, v in truth.params.items()}
+
+
+def coverage_task(task: tuple[str, str, int]) -> dict:
+    """One profile: coverage of the generating family, the old pipeline, AD adequacy."""
+    name, noise, i = task
+    truth = next(x for x in TRUTHS if x.name == name)
+    c, q = _truth_data(truth)
+    y, _ = V.measure(c, NOISE[noise], _rng(name, noise, i))
+    prof = from_arrays(T, y, name=f"{name}_{noise}_{i}")
+    row: dict = {"truth": name, "noise": noise, "i": i}
+    t0 = time.perf_counter()
+    a = None
+    if truth.family is not None:
+        try:
+            a = analyze(prof, Preprocessing(), truth.family, durations=DURATIONS)
+        except ValueError as exc:
+            row["error"] = str(exc)
+            return row
+        row["seconds"] = time.perf_counter() - t0
+        f = a.summary.fit
+        ci = f.ci
+        cov = {k: _inside(ci[k], v) for k, v in truth.params.items()}
+        m = a.summary.moments
+        band = a.funnel.at(10.0)
+        cov["mean_residence_time_s"] = _inside(
+            m["mean_residence_time_s"].ci, q["mean_residence_time_s"]
+        )
+        cov["variance_s2"] = _inside(m["variance_s2"].ci, q["variance_s2"])
+        cov["t_lo_s"] = _inside(a.lots_model["t_lo_s"].ci, q["t_lo_s"])
+        cov["t_hi_s"] = _inside(a.lots_model["t_hi_s"].ci, q["t_hi_s"])
+        cov["feasible_fraction"] = _inside(a.funnel.feasible_fraction.ci, q["feasible_fraction"])
+        cov["h_crit_10s"] = _inside(band["ci"], q["h_crit_10s"])
+        row["covered"] = cov
+        row["mrt_error_pct"] = 100 * (
+            m["mean_residence_time_s"].value / q["mean_residence_time_s"] - 1
+        )
+        row["adequate_own"] = f.adequate
+        row["old"] = _old_pipeline(y, truth)
+    t1 = time.perf_counter()
+    ad = a.summary if truth.family == "ad_open" else fit_profile(prof, "ad_open")
+    row["ad_seconds"] = time.perf_counter() - t1
+    row["ad_adequate"] = ad.fit.adequate
+    row["ad_p"] = ad.fit.lack_of_fit.p_value
+    row["ad_mrt_error_pct"] = 100 * (
+        ad.moments["mean_residence_time_s"].value / q["mean_residence_time_s"] - 1
+    )
+    return row
+
+
+def selection_task(task: tuple[str, str, int]) -> dict:
+    """One profile: every registered model ranked by BIC."""
+    name, noise, i = task
+    truth = next(x for x in TRUTHS if x.name == name)
+    c, _ = _truth_data(truth)
+    y, _ = V.measure(c, NOISE[noise], _rng(name, noise, 10_000 + i))
+    t0 = time.perf_counter()
+    r = fit_candidates(T, y, list(MODELS))
+    best = r.best
+    return {
+        "truth": name,
+        "noise": noise,
+        "i": i,
+        "selected": best.model,
+        "selected_k": len(get_model(best.model).params),
+        "family": truth.family or "ad_open_dead",
+        "family_weight": sum(
+            w for f, w in zip(r.fits, r.weights) if f.model == (truth.family or "ad_open_dead")
+        ),
+        "max_candidate_s": max(f.seconds for f in r.fits),
+        "failed": r.failed,
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def _run(path: Path, tasks: list, fn, jobs: int, desc: str) -> list[dict]:
+    done = []
+    if path.exists():
+        done = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    have = {(r["truth"], r["noise"], r["i"]) for r in done}
+    todo = [t for t in tasks if t not in have]
+    with path.open("a") as fh, Pool(jobs) as pool:
+        bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc=desc, file=sys.stderr)
+        for row in pool.imap_unordered(fn, todo):
+            fh.write(json.dumps(row) + "\n")
+            fh.flush()
+            done.append(row)
+            bar.update()
+        bar.close()
+    return done
+
+
+def _pct(x: list[bool]) -> str:
+    return f"{100 * np.mean(x):.1f}" if x else "-"
+
+
+def coverage_tables(rows: list[dict]) -> str:
+    """Markdown tables: coverage per truth and noise, old pipeline, adequacy."""
+    keys = ["mean_residence_time_s", "variance_s2", "t_lo_s", "t_hi_s"]
+    keys += ["feasible_fraction", "h_crit_10s"]
+    lines = [
+        "| truth | noise | n | parameters (each) | MRT | variance | t_lo | t_hi | feasible frac. | "
+        "h_crit(10 s) | old pipeline (each) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    ade = [
+        "| truth | noise | n | AD flagged inadequate % | AD MRT error % (median) |",
+        "|---|---|---|---|---|",
+    ]
+    for truth in TRUTHS:
+        for noise in NOISE:
+            sub = [r for r in rows if r["truth"] == truth.name and r["noise"] == noise]
+            ok = [r for r in sub if "covered" in r]
+            if ok:
+                pars = " / ".join(_pct([r["covered"][k] for r in ok]) for k in truth.params)
+                old = [r["old"] for r in ok if r.get("old")]
+                olds = " / ".join(_pct([o[k] for o in old]) for k in truth.params)
+                cells = " | ".join(_pct([r["covered"][k] for r in ok]) for k in keys)
+                lines.append(f"| {truth.name} | {noise} | {len(ok)} | {pars} | {cells} | {olds} |")
+            if sub:
+                ade.append(
+                    f"| {truth.name} | {noise} | {len(sub)} | "
+                    f"{_pct([not r['ad_adequate'] for r in sub])} | "
+                    f"{np.median([r['ad_mrt_error_pct'] for r in sub]):+.1f} |"
+                )
+    errors = [r for r in rows if "error" in r]
+    tail = [f"\nprofiles refused: {len(errors)}"] + [
+        f"  {r['truth']} {r['error']}" for r in errors[:5]
+    ]
+    secs = [r["seconds"] for r in rows if "seconds" in r]
+    tail.append(
+        f"analyze wall time per profile: median {np.median(secs):.2f} s, 95th percentile "
+        f"{np.percentile(secs, 95):.2f} s"
+    )
+    return "\n".join(lines + [""] + ade + tail)
+
+
+def selection_tables(rows: list[dict]) -> str:
+    """Markdown table: what BIC selects per truth and noise."""
+    lines = [
+        "| truth | noise | n | generating family selected % | more parameters than the truth % | "
+        "median weight of the family | slowest candidate (s, max) | failed candidates |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    true_k = {"ad_open": 3, "tis": 3, "emg": 3, "ad_open_dead": 5}
+    for name in SELECTION:
+        for noise in NOISE:
+            sub = [r for r in rows if r["truth"] == name and r["noise"] == noise]
+            if not sub:
+                continue
+            fam = sub[0]["family"]
+            fails = sum(len(r["failed"]) for r in sub)
+            lines.append(
+                f"| {name} | {noise} | {len(sub)} | {_pct([r['selected'] == fam for r in sub])} | "
+                f"{_pct([r['selected_k'] > true_k[fam] for r in sub])} | "
+                f"{np.median([r['family_weight'] for r in sub]):.2f} | "
+                f"{max(r['max_candidate_s'] for r in sub):.1f} | {fails} |"
+            )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--profiles", type=int, default=100, help="profiles per truth and noise")
+    ap.add_argument("--selection", type=int, default=25, help="profiles for model selection")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=Path("out/rtd_coverage"))
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(describe())
+    tasks = [(t.name, n, i) for t in TRUTHS for n in NOISE for i in range(args.profiles)]
+    rows = _run(args.out / "coverage.jsonl", tasks, coverage_task, args.jobs, "coverage")
+    print(coverage_tables(rows))
+    sel = [(t, n, i) for t in SELECTION for n in NOISE for i in range(args.selection)]
+    srows = _run(args.out / "selection.jsonl", sel, selection_task, args.jobs, "selection")
+    print(selection_tables(srows))
+
+
+if __name__ == "__main__":
+    main()
