@@ -313,10 +313,11 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     print(describe())
-    tasks = [(t.name, n, i) for t in TRUTHS for n in NOISE for i in range(args.profiles)]
+    # profile index outermost: a campaign stopped early is balanced across truths and noises
+    tasks = [(t.name, n, i) for i in range(args.profiles) for t in TRUTHS for n in NOISE]
     rows = _run(args.out / "coverage.jsonl", tasks, coverage_task, args.jobs, "coverage")
     print(coverage_tables(rows))
-    sel = [(t, n, i) for t in SELECTION for n in NOISE for i in range(args.selection)]
+    sel = [(t, n, i) for i in range(args.selection) for t in SELECTION for n in NOISE]
     srows = _run(args.out / "selection.jsonl", sel, selection_task, args.jobs, "selection")
     print(selection_tables(srows))
 
