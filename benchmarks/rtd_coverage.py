@@ -36,9 +36,9 @@ import numpy as np
 from machine import describe
 from tqdm import tqdm
 
+from twin_core.quality.analysis import analyze
 from twin_core.quality.funnel import funnel, max_window_fraction
 from twin_core.quality.lots import quantile_time
-from twin_core.quality.analysis import analyze
 from twin_core.rtd import virtual as V
 from twin_core.rtd.denoise import denoise
 from twin_core.rtd.fitting import fit
@@ -117,12 +117,36 @@ def truth_quantities(truth: Truth) -> dict[str, float]:
 _CACHE: dict[str, tuple[np.ndarray, dict]] = {}
 
 
+def _compute_truth(name: str) -> tuple[str, list[float], dict]:
+    truth = next(x for x in TRUTHS if x.name == name)
+    c = V.pulse_concentration(truth.e(T), truth.amount_g)
+    return name, c.tolist(), truth_quantities(truth)
+
+
+def prepare_truths(path: Path, jobs: int) -> None:
+    """Every truth's measured-grid concentration and derived quantities, computed once (the
+    PDE on the long fine grid is the slow part) in parallel, kept in ``path`` for reruns and
+    inherited by the workers of the campaign."""
+    stored = json.loads(path.read_text()) if path.exists() else {}
+    todo = [t.name for t in TRUTHS if t.name not in stored]
+    if todo:
+        with Pool(jobs) as pool:
+            for name, c, q in tqdm(
+                pool.imap_unordered(_compute_truth, todo),
+                total=len(todo),
+                desc="truths",
+                file=sys.stderr,
+            ):
+                stored[name] = {"c": c, "q": q}
+                path.write_text(json.dumps(stored))
+    for name, v in stored.items():
+        _CACHE[name] = (np.asarray(v["c"]), v["q"])
+
+
 def _truth_data(truth: Truth) -> tuple[np.ndarray, dict]:
     if truth.name not in _CACHE:
-        _CACHE[truth.name] = (
-            V.pulse_concentration(truth.e(T), truth.amount_g),
-            truth_quantities(truth),
-        )
+        _, c, q = _compute_truth(truth.name)
+        _CACHE[truth.name] = (np.asarray(c), q)
     return _CACHE[truth.name]
 
 
@@ -313,6 +337,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     print(describe())
+    prepare_truths(args.out / "truths.json", args.jobs)
     # profile index outermost: a campaign stopped early is balanced across truths and noises
     tasks = [(t.name, n, i) for i in range(args.profiles) for t in TRUTHS for n in NOISE]
     rows = _run(args.out / "coverage.jsonl", tasks, coverage_task, args.jobs, "coverage")
