@@ -71,7 +71,7 @@ def _fit_options(q: argparse.ArgumentParser, default: str) -> None:
         "--time-limit",
         type=float,
         default=TIME_LIMIT_S,
-        help=f"seconds per fitted model (default {TIME_LIMIT_S:g})",
+        help=f"CPU seconds per fitted model (default {TIME_LIMIT_S:g})",
     )
 
 

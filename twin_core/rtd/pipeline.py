@@ -264,7 +264,7 @@ def fit_profile(
             fit = fit_raw(profile.t, profile.c, model, b, time_limit_s=time_limit_s)
         except FitTimeout:
             raise ValueError(
-                f"fit of {model} ran past its time limit of {time_limit_s:g} s"
+                f"fit of {model} ran past its time limit of {time_limit_s:g} CPU s"
             ) from None
     if not fit.adequate:
         warnings.insert(0, inadequacy_warning(fit))
