@@ -20,6 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
+#: the default of --time-limit as the help states it (a test holds it equal to
+#: ``rtd.likelihood.TIME_LIMIT_S``, which the parser does not import)
+_DEFAULT_TIME_LIMIT_HELP = "30"
+
 
 def _profile_options(q: argparse.ArgumentParser) -> None:
     q.add_argument("file", type=Path, help="CSV (or ; / tab separated) lab export")
@@ -59,20 +63,26 @@ def _preprocess_options(q: argparse.ArgumentParser) -> None:
 
 
 def _fit_options(q: argparse.ArgumentParser, default: str) -> None:
-    from twin_core.rtd.likelihood import TIME_LIMIT_S
-    from twin_core.rtd.models import MODELS
-
+    # no twin_core import here: building the parser of every `twin` command stays free of scipy
     q.add_argument(
         "--fit",
         default=default,
-        help=f"{' | '.join(MODELS)} | all (ranked by BIC) | none (default {default})",
+        help="ad_open | ad_closed | tis | ... (an unknown name lists all models) | all (ranked "
+        f"by BIC) | none (default {default})",
     )
     q.add_argument(
         "--time-limit",
         type=float,
-        default=TIME_LIMIT_S,
-        help=f"CPU seconds per fitted model (default {TIME_LIMIT_S:g})",
+        default=None,
+        help=f"CPU seconds per fitted model (default {_DEFAULT_TIME_LIMIT_HELP})",
     )
+
+
+def _time_limit(args: argparse.Namespace) -> float:
+    """--time-limit, or the library's default (``rtd.likelihood.TIME_LIMIT_S``)."""
+    from twin_core.rtd.likelihood import TIME_LIMIT_S
+
+    return TIME_LIMIT_S if args.time_limit is None else args.time_limit
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -176,7 +186,9 @@ def _analyze(args: argparse.Namespace) -> int:
     from twin_core.rtd.plots import plot_profile
 
     try:
-        res = analyze(_load(args), _preprocessing(args), _model(args), time_limit_s=args.time_limit)
+        res = analyze(
+            _load(args), _preprocessing(args), _model(args), time_limit_s=_time_limit(args)
+        )
         args.out.mkdir(parents=True, exist_ok=True)
         p, s = res.processed, res.summary
         cols = {"t_s": p.t, "measured_pct_w_w": p.profile.c, "processed_pct_w_w": p.y}
@@ -207,7 +219,7 @@ def _funnel(args: argparse.Namespace) -> int:
         h = _range(args.intensities, "intensities")
         profiles = [_load(args)] + ([_load(args, args.compare)] if args.compare else [])
         res = funnel_analysis(
-            profiles, _preprocessing(args), _model(args), d, h, args.limit, args.time_limit
+            profiles, _preprocessing(args), _model(args), d, h, args.limit, _time_limit(args)
         )
         args.out.mkdir(parents=True, exist_ok=True)
         cols = {"duration_s": d}
@@ -240,7 +252,7 @@ def _lots(args: argparse.Namespace) -> int:
             args.lower,
             args.upper,
             tuple(args.disturbance) if args.disturbance else None,
-            args.time_limit,
+            _time_limit(args),
         )
         args.out.mkdir(parents=True, exist_ok=True)
         _write_csv(args.out / "lots.csv", res.curves())
