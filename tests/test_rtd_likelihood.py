@@ -38,7 +38,7 @@ def ad_truth():
 @pytest.fixture(scope="module")
 def ad_fits(ad_truth):
     rng = np.random.default_rng(17)
-    return [fit_raw(T, V.measure(ad_truth, V.SEED_NOISE, rng)[0]) for _ in range(24)]
+    return [fit_raw(T, V.measure(ad_truth, V.SEED_NOISE, rng)[0]) for _ in range(16)]
 
 
 def test_pink_correlation_is_the_generators_covariance():
@@ -101,9 +101,10 @@ def test_noise_components_recovered():
 
 def test_intervals_cover_the_pde_truth(ad_fits):
     """95 % intervals of tau_d, tau, Pe and the mean residence time cover the PDE truth in
-    >= 19 of 24 profiles each. At the campaign's coverage (93 % of the parameters, 95.5 % of
-    the mean residence time, seed noise, 110 profiles), P(<= 18 of 24) = 0.5 % per quantity
-    (2 % for the four); the pipeline's old intervals covered 28 %."""
+    >= 12 of 16 profiles each. At the campaign's coverage (93 % of the parameters, 95.5 % of
+    the mean residence time, seed noise, 110 profiles), P(<= 11 of 16) = 0.4 % per quantity
+    (1.5 % for the four); the pipeline's old intervals (28 %) would pass with P = 1e-4. The
+    fixed seed covers in 15-16 of 16."""
     true_mrt = AD["tau_d"] + AD["tau"] * (1 + 2 / AD["pe"])
     hits = {k: 0 for k in (*AD, "mrt")}
     for f in ad_fits:
@@ -111,25 +112,27 @@ def test_intervals_cover_the_pde_truth(ad_fits):
             hits[k] += f.ci[k][0] <= v <= f.ci[k][1]
         m = moment_estimates(f, model_grid(f, T))["mean_residence_time_s"]
         hits["mrt"] += m.ci[0] <= true_mrt <= m.ci[1]
-    assert min(hits.values()) >= 19, hits
+    assert min(hits.values()) >= 12, hits
 
 
 def test_lack_of_fit_null_rate(ad_fits):
-    """Pure AD (PDE) profiles with white + 1/f + proportional noise: at most 3 of 24 flagged
+    """Pure AD (PDE) profiles with white + 1/f + proportional noise: at most 3 of 16 flagged
     inadequate. The test's level is 1 %; the campaign flagged 3 of 94 pure AD profiles at the
-    seed's noise (3.2 %): P(>= 4 of 24) = 0.7 %."""
+    seed's noise (3.2 %): P(>= 4 of 16) = 0.14 % (0.7 % at a rate of 5 %). The fixed seed
+    flags 1."""
     assert sum(not f.adequate for f in ad_fits) <= 3
 
 
 def test_lack_of_fit_flags_a_stagnant_zone():
     """A stagnant zone (two-zone PDE, r = 0.4, tau_x = 25 s, 10 g, seed noise) fitted by AD:
-    at least 8 of 10 flagged, and the flag names the deviation. The campaign flagged 8 of 8
-    profiles of the weaker r = 0.3 zone at this amount and noise; at a power of 97 %,
-    P(<= 7 of 10) = 0.3 %. (Power falls at 5 g and at twice the noise: docs/rtd.md.)"""
+    at least 6 of 10 flagged, and the flag names the deviation. On this 160 s record the
+    zone was flagged in 55 of 60 profiles of two other seeds (92 %); at a power of 90 %,
+    P(<= 5 of 10) = 0.2 % (3 % at 80 %), while a test without power (3 % flagged) passes
+    with P = 1e-7. The fixed seed flags 8."""
     c = V.pulse_concentration(V.dispersion_pde(T, 10.0, 14.0, 10.0, 0.4, 25.0, nodes=200), 10.0)
     rng = np.random.default_rng(5)
     fits = [fit_raw(T, V.measure(c, V.SEED_NOISE, rng)[0]) for _ in range(10)]
-    assert sum(not f.adequate for f in fits) >= 8
+    assert sum(not f.adequate for f in fits) >= 6
     worst = [min(f.lack_of_fit.tests, key=lambda x: x.p_value).name for f in fits]
     assert set(worst) <= {"shape", "tail"}
 
@@ -162,16 +165,18 @@ def test_derived_moments_follow_the_model_laws(ad_truth):
 
 
 def test_bic_keeps_three_parameters_on_pure_data(ad_truth):
-    """Pure AD data with correlated noise: BIC on the GLS likelihood does not rank the
-    5-parameter AD + bypass first in 3 profiles, weights sum to 1. The seeds are fixed; the
-    rate at which BIC picks extra parameters is the selection table of
-    benchmarks/rtd_coverage.py, not measured at scale yet (docs/rtd.md)."""
+    """Pure AD data with correlated noise: BIC on the GLS likelihood ranks the 5-parameter
+    AD + bypass first in at most 1 of 3 profiles; weights sum to 1. It did so in 0 of 50
+    profiles of two other seeds (rate < 6 % at 95 % confidence): P(>= 2 of 3) < 1 %. The
+    fixed seed keeps 3 parameters in all 3."""
     rng = np.random.default_rng(6)
+    extra = 0
     for _ in range(3):
         y, _ = V.measure(ad_truth, V.SEED_NOISE, rng)
         r = fit_candidates(T, y, ["ad_open", "ad_open_bypass", "tis"])
-        assert r.best.k - 2 == 3, r.as_dict()["ranking"]
+        extra += r.best.k - 2 > 3
         assert sum(r.weights) == pytest.approx(1.0)
+    assert extra <= 1
 
 
 def test_time_limit_per_candidate(ad_truth):
