@@ -16,7 +16,7 @@ recovery of missed ones) that query every matching publisher's cache themselves 
 eclipse-zenoh 1.10.2 an advanced subscriber on a wildcard key that joins while several advanced
 publishers are live receives the history of only some of them (measured: in 10 of 10 joins, 3-4
 of 5 publishers delivered live samples only), although a plain query of their caches returns
-every sample (``tests/test_history_feed.py``).
+every sample (``tests/services/test_history_feed.py``).
 
 Topology. Two processes on one host: one listens, the other connects (peer to peer). More
 processes: one session in ``router`` mode (``twin router``) listens and the others connect to it

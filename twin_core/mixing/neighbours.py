@@ -6,7 +6,7 @@ neighbours of every particle. Particles are binned into cells about the contact 
 once and compared with every particle of the cell, which finds every contact; a particle
 whose ``k``-th nearest candidate lies beyond the reach of those cells (free surface, flying
 particle) is searched again over growing blocks of cells, so contacts and neighbours are exact
-(the same pairs and sets as a KD-tree, ``tests/test_mixing_indices.py``).
+(the same pairs and sets as a KD-tree, ``tests/twin_core/mixing/test_mixing_indices.py``).
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ Exact volumes (unit ball ``B``; a sphere of radius ``r`` scales them by ``r^3``)
 The same decomposition (cap, wedge, corner) is that of Strobl, Formella & Pöschel, "Exact
 calculation of the overlap volume of spheres and mesh elements", J. Comput. Phys. 311 (2016)
 158-172. Tested against the analytic cap, octant and partition identities and an independent
-numerical integration (``tests/test_mixing_sampling.py``).
+numerical integration (``tests/twin_core/mixing/test_mixing_sampling.py``).
 """
 
 from __future__ import annotations
@@ -185,7 +185,7 @@ def ball_quadrature(n_shells: int = 12, n_directions: int = 128) -> tuple[np.nda
 
     Used where cells are not boxes (cylindrical bins): a sphere's share of a cell is the weight
     of the points that fall in it. With the defaults (1,536 points) a plane cut is within 1 %
-    of the ball volume of the exact cap (``tests/test_mixing_sampling.py``)."""
+    of the ball volume of the exact cap (``tests/twin_core/mixing/test_mixing_sampling.py``)."""
     edges = np.cbrt(np.linspace(0.0, 1.0, n_shells + 1))
     radii = np.cbrt(0.5 * (edges[:-1] ** 3 + edges[1:] ** 3))
     k = np.arange(n_directions) + 0.5

@@ -16,7 +16,7 @@ from schemas.messages import DemJobProgress, DemJobRequest, DemJobResult
 from services.bus import free_port, open_session
 from services.supervisor import Supervisor
 
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "services" / "configs" / "line1.yaml"
 
 
 @pytest.fixture(scope="module")

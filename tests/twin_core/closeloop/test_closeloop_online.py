@@ -14,7 +14,7 @@ from schemas.line import LineSpec
 from twin_core.closeloop.online import OnlineCloseLoop, Window
 from twin_core.plant import FlowDisturbance, simulate_line
 
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[3] / "services" / "configs" / "line1.yaml"
 DIST = [
     FlowDisturbance("api", 300.0, 0.6, 30.0),
     FlowDisturbance("api", 750.0, -0.6, 40.0),

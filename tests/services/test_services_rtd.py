@@ -12,7 +12,7 @@ from services.rtd import RtdService
 from twin_core.plant import simulate_line
 from twin_core.plant.messages import run_messages
 
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "services" / "configs" / "line1.yaml"
 
 
 class Pub:

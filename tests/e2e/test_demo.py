@@ -16,7 +16,7 @@ from schemas.messages import FeederFlow
 from services.demo import BUNDLED_RECORDING, run_replay_check
 from services.recording import McapRecorder, load_line_data, read_recording
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_replay_check_on_bundled_recording_captures_everything(tmp_path):

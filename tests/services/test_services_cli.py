@@ -21,7 +21,7 @@ import pytest
 from schemas.line import LineSpec
 from services.bus import free_port
 
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "services" / "configs" / "line1.yaml"
 
 
 def twin(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:

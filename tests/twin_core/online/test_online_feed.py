@@ -12,7 +12,7 @@ from services.oos import OosService
 from services.recording import read_recording, recording_mismatches
 from twin_core.online.feed import FeedCheck
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[3]
 BUNDLED = ROOT / "recordings" / "line1_30min.mcap"
 LINE1 = ROOT / "services" / "configs" / "line1.yaml"
 LINE1_5PCT = ROOT / "services" / "configs" / "line1_5pct.yaml"

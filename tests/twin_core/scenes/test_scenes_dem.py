@@ -22,7 +22,7 @@ import yaml
 
 from schemas.dem_scene import load_scene
 
-CONFIGS = Path(__file__).resolve().parents[1] / "twin_core" / "scenes" / "configs"
+CONFIGS = Path(__file__).resolve().parents[3] / "twin_core" / "scenes" / "configs"
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_numba_thread")]
 

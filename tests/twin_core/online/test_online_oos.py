@@ -18,7 +18,7 @@ from twin_core.plant.messages import run_messages, simulate_messages
 from twin_core.quality.funnel import funnel_gain
 from twin_core.quality.lots import diversion_window
 
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[3] / "services" / "configs" / "line1.yaml"
 
 
 def spec_with(**kw) -> LineSpec:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 #: the processes of the live twin (``services.runner``)
 SERVICE_MODULES = ("blender", "oos", "rtd", "feeder", "closeloop", "recorder", "dem")

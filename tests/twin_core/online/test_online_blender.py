@@ -13,7 +13,7 @@ from twin_core.plant import FlowDisturbance, LineModel, simulate_line
 from twin_core.plant.messages import simulate_messages
 from twin_core.rtd.models import model_e
 
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[3] / "services" / "configs" / "line1.yaml"
 DIST = [FlowDisturbance("api", 300.0, 0.6, 30.0), FlowDisturbance("api", 750.0, -0.6, 40.0)]
 
 

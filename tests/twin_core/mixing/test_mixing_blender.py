@@ -26,7 +26,7 @@ import yaml
 from services.cli.main import main
 
 SCENE = (
-    Path(__file__).resolve().parents[1] / "twin_core" / "scenes" / "configs" / "blender_small.yaml"
+    Path(__file__).resolve().parents[3] / "twin_core" / "scenes" / "configs" / "blender_small.yaml"
 )
 N_SEEDS = 3
 

@@ -12,7 +12,7 @@ from services.recording import write_messages
 from services.twin_demo import run_full_twin_demo
 from twin_core.plant.messages import simulate_messages
 
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "services" / "configs" / "line1.yaml"
 
 
 def test_full_twin_demo_report_and_figure(tmp_path):

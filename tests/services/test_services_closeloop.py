@@ -27,7 +27,7 @@ from services.supervisor import Supervisor
 from twin_core.plant.messages import simulate_messages
 from twin_core.plant.model import LineModel
 
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "services" / "configs" / "line1.yaml"
 EFFECT = {"name": "extra_delay", "params": {"delay_s": 10.0}}
 DISTURBANCES = [
     {"feeder": "api", "t_s": 300.0, "delta_kg_h": 0.6, "duration_s": 30.0},

@@ -34,7 +34,7 @@ from twin_core.online.blender import declared_kernel
 from twin_core.plant.messages import simulate_messages
 from twin_core.quality.lots import diversion_window
 
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "services" / "configs" / "line1.yaml"
 DISTURBANCES = [
     {"feeder": "api", "t_s": 300.0, "delta_kg_h": 0.6, "duration_s": 30.0},
     {"feeder": "api", "t_s": 1200.0, "delta_kg_h": -0.6, "duration_s": 40.0},

@@ -12,7 +12,7 @@ from twin_core.online.rtd import RtdCore, analyze_segment
 from twin_core.online.tracer import TracerPulseDetector
 from twin_core.plant import simulate_line
 
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[3] / "services" / "configs" / "line1.yaml"
 
 
 def spec_with(**kw) -> LineSpec:

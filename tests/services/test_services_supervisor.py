@@ -13,7 +13,7 @@ from schemas.line import LineSpec
 from services.bus import free_port
 from services.supervisor import Supervisor
 
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "services" / "configs" / "line1.yaml"
 
 
 def test_hung_service_is_killed_and_restarted(tmp_path):

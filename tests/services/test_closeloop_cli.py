@@ -17,7 +17,7 @@ from twin_core.closeloop.scenarios import effect_spec, standard_scenario
 from twin_core.plant import simulate_line
 
 recording = pytest.importorskip("services.recording")
-CONFIG = Path(__file__).resolve().parent.parent / "services" / "configs" / "line1.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "services" / "configs" / "line1.yaml"
 
 
 def write_line_config(cfg: LineConfig, path: Path) -> None:
