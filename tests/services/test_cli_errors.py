@@ -44,7 +44,7 @@ CASES: dict[str, tuple[str, str]] = {
     "plant simulate": ("--config {missing} --out {tmp}/o.mcap", "--config {bad} --out {tmp}/o"),
     "rtd analyze": ("{missing} --out {tmp}/o", "{bad} --out {tmp}/o"),
     "rtd funnel": ("{missing} --out {tmp}/o", "{bad} --out {tmp}/o"),
-    "rtd lots": ("{missing}", "{bad}"),
+    "rtd lots": ("{missing} --out {tmp}/o", "{bad} --out {tmp}/o"),
     "rtd reproduce": ("--out {bad}/o", "--out {bad}/x/o"),
     "dem run": ("{missing}", "{bad}"),
     "calibrate design": ("--levels {missing} --out {tmp}/o", "--levels {bad} --out {tmp}/o"),
