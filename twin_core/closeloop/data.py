@@ -149,3 +149,28 @@ def make_split(
     if train.sum() < 10 or held.sum() < 10:
         raise ValueError("split leaves fewer than 10 samples in a window")
     return Split(train, held, kind, desc)
+
+
+def split_kept(
+    t_s: np.ndarray,
+    keep: np.ndarray,
+    kind: str = "tail",
+    train_fraction: float = 0.6,
+    block_s: float = 120.0,
+    skip_s: float = 0.0,
+) -> Split:
+    """:func:`make_split` over the samples in ``keep`` only, as masks over the whole run.
+
+    Used when the data-quality check leaves out the end of a record (after a clock jump the
+    rest is misaligned): the windows are then laid over the usable part, so the usable data
+    are still checked instead of the check failing for want of a held-out window."""
+    keep = np.asarray(keep, dtype=bool)
+    t = np.asarray(t_s, dtype=float)
+    if keep.sum() < 20:
+        raise ValueError(f"usable samples must be >= 20 to split, got {int(keep.sum())}")
+    inner = make_split(t[keep], kind, train_fraction, block_s, skip_s)
+    train = np.zeros(t.size, dtype=bool)
+    held = np.zeros(t.size, dtype=bool)
+    train[keep] = inner.train
+    held[keep] = inner.heldout
+    return Split(train, held, kind, inner.description + " (over the usable samples)")

@@ -70,7 +70,7 @@ from typing import Any
 import numpy as np
 from scipy import optimize, stats
 
-from twin_core.closeloop.data import RunData, Split, make_split
+from twin_core.closeloop.data import RunData, Split, make_split, split_kept
 from twin_core.closeloop.diagnostics import innovation_tests
 from twin_core.closeloop.noise import NoiseWhitener
 from twin_core.plant.effects import EFFECTS, Effect
@@ -638,6 +638,11 @@ def identify(
         usable &= ~np.asarray(exclude, dtype=bool)
     train = split.train & usable
     held = split.heldout & usable
+    if exclude is not None and (train.sum() < 10 or held.sum() < 10) and usable.sum() >= 20:
+        # the quality check left out a whole window (e.g. all after a clock jump): lay the
+        # windows over the usable samples
+        split = split_kept(data.t_s, usable, opt.split, opt.train_fraction, opt.block_s, opt.skip_s)
+        train, held = split.train & usable, split.heldout & usable
     if train.sum() < 10 or held.sum() < 10:
         raise ValueError(
             f"usable samples must be >= 10 in each window, got {int(train.sum())} training "

@@ -150,3 +150,21 @@ def test_a_record_whose_only_fault_is_flagged_gets_data_quality_status(clean):
     assert res.status == "data_quality" and rep["effects"] == []
     assert [f["kind"] for f in rep["data_quality"]] == ["stuck"]
     assert rep["decision"]["samples_left_out"] == 60
+
+
+def test_a_clock_jump_leaves_the_rest_out_and_the_part_before_is_still_checked(clean):
+    """A PLC clock reset half-way through the NIR stamps (sequence numbers advance by one while
+    the stamps jump 20 s): everything after it is misaligned and left out, so the held-out
+    window of the usual split would be empty; the windows are laid over the usable part and
+    the record gets ``data_quality``, no effect claimed (before: a ValueError, no report)."""
+    model, data = clean
+    jump = data.t_s.size // 2
+    t_stamps = np.where(np.arange(data.t_s.size) >= jump, data.t_s + 20.0, data.t_s)
+    stamps = {"nir": StreamStamps(t_stamps, np.arange(data.t_s.size))}
+    res = close_loop(
+        RunData(data.t_s, data.measured, data.inputs, data.events, "jump", stamps), model
+    )
+    rep = res.to_dict()
+    assert [f["kind"] for f in rep["data_quality"]] == ["time_jump"]
+    assert res.status == "data_quality" and rep["effects"] == []
+    assert rep["decision"]["samples_left_out"] >= data.t_s.size - jump
