@@ -15,12 +15,12 @@ the rates are printed and written next to the CSV.
 from __future__ import annotations
 
 import argparse
-import csv
 import time
 from collections import Counter, defaultdict
 from pathlib import Path
 
 import numpy as np
+from results import read_rows, row_appender
 from tqdm import tqdm
 
 from schemas.line import NIRNoise
@@ -207,11 +207,7 @@ def main() -> int:
     ap.add_argument("--select", default="bic_all", choices=("bic_all", "heldout"))
     args = ap.parse_args()
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    done: list[dict] = []
-    if out.exists():
-        with out.open() as f:
-            done = list(csv.DictReader(f))
+    done = read_rows(out)
     seen = {(r["truth"], int(r["level"]), float(r["noise"]), int(r["seed"])) for r in done}
     levels = [int(x) for x in args.levels.split(",")]
     noises = [float(x) for x in args.noise.split(",")]
@@ -232,16 +228,9 @@ def main() -> int:
     if args.summary_only:
         todo = []
     opts = IdentifyOptions(select=args.select)
-    new_file = not out.exists()
-    with out.open("a", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=FIELDS)
-        if new_file:
-            wr.writeheader()
+    with row_appender(out, FIELDS, done) as append:
         for j in tqdm(todo, desc="close-loop runs"):
-            row = one(*j, duration=args.duration, opts=opts)
-            wr.writerow(row)
-            f.flush()
-            done.append({k: str(v) for k, v in row.items()})
+            append(one(*j, duration=args.duration, opts=opts))
     text = summarize(done)
     print(text)
     out.with_suffix(".txt").write_text(text + "\n")

@@ -21,7 +21,6 @@ benchmark resumes; the summary (markdown tables) is printed and written next to 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import multiprocessing as mp
 import time
@@ -30,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 from machine import describe
+from results import read_rows, row_appender
 from tqdm import tqdm
 
 from twin_core.closeloop.check import check_recording
@@ -323,11 +323,7 @@ def main() -> int:
     ap.add_argument("--summary-only", action="store_true", help="re-print the tables of --out")
     args = ap.parse_args()
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    done: list[dict] = []
-    if out.exists():
-        with out.open() as f:
-            done = list(csv.DictReader(f))
+    done = read_rows(out)
     seen = {job_key(r) for r in done}
     options = json.loads(args.options)
     jobs = [
@@ -344,16 +340,13 @@ def main() -> int:
     print(describe())
     t0 = time.perf_counter()
     if todo:
-        new_file = not out.exists()
-        with out.open("a", newline="") as f, mp.get_context("fork").Pool(args.workers) as pool:
-            wr = csv.DictWriter(f, fieldnames=FIELDS)
-            if new_file:
-                wr.writeheader()
+        with (
+            row_appender(out, FIELDS, done) as append,
+            mp.get_context("fork").Pool(args.workers) as pool,
+        ):
             for row in tqdm(pool.imap_unordered(one, todo, chunksize=4), total=len(todo),
                             desc="open-world runs"):  # fmt: skip
-                wr.writerow(row)
-                f.flush()
-                done.append({k: str(v) for k, v in row.items()})
+                append(row)
     text = summarize(done)
     text += f"\nWall time of this invocation: {(time.perf_counter() - t0) / 60:.1f} min, " \
             f"{len(todo)} runs, {args.workers} workers."  # fmt: skip

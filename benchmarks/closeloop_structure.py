@@ -30,7 +30,6 @@ summary is printed and written next to the CSV.
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import time
 from collections import defaultdict
@@ -39,6 +38,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from results import read_rows, row_appender
 from scipy import stats
 
 from twin_core.closeloop import make_split
@@ -243,30 +243,23 @@ def main() -> int:
     ap.add_argument("--summary-only", action="store_true", help="re-print the table of --out")
     args = ap.parse_args()
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    done: list[dict] = []
-    if out.exists():
-        with out.open() as f:
-            done = list(csv.DictReader(f))
+    done = read_rows(out)
     seen = {int(r["seed"]) for r in done}
     noises = [float(x) for x in args.noise.split(",")]
     only = tuple(x for x in args.only.split(",") if x)
     todo = [s for s in range(args.first_seed, args.first_seed + args.seeds) if s not in seen]
     if args.summary_only:
         todo = []
-    new_file = not out.exists()
-    with out.open("a", newline="") as f, ProcessPoolExecutor(max(1, args.workers)) as pool:
-        wr = csv.DictWriter(f, fieldnames=FIELDS)
-        if new_file:
-            wr.writeheader()
+    with (
+        row_appender(out, FIELDS, done) as append,
+        ProcessPoolExecutor(max(1, args.workers)) as pool,
+    ):
         futures = [
             pool.submit(seed_rows, s, args.duration, noises, args.tracer, only) for s in todo
         ]
         for i, fut in enumerate(futures):
             for row in fut.result():
-                wr.writerow(row)
-                done.append({k: str(v) for k, v in row.items()})
-            f.flush()
+                append(row)
             print(f"seed {todo[i]} done ({i + 1}/{len(todo)})", flush=True)
     text = summarize(done)
     print(text)
