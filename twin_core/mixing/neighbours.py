@@ -110,6 +110,20 @@ def _gap(frac, off, width):
 
 
 @njit(cache=True, inline="always")
+def _image_d2(dx, dy, dz, im0, im1, im2):
+    """Squared length of the separation (dx, dy, dz) at its nearest periodic image along the
+    axes whose period ``im0, im1, im2`` is > 0: ``d - L rint(d / L)`` (Allen & Tildesley 2017,
+    Sec. 1.6.2)."""
+    if im0 > 0.0:
+        dx -= im0 * np.rint(dx / im0)
+    if im1 > 0.0:
+        dy -= im1 * np.rint(dy / im1)
+    if im2 > 0.0:
+        dz -= im2 * np.rint(dz / im2)
+    return dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True, inline="always")
 def _scan_range(ps, a, b0, b1, sh0, sh1, sh2, im0, im1, im2, thr, order, cand_d, cand_j, m):
     """Candidates ``b0 <= b < b1`` (cell order, shifted by a period where they lie across a
     periodic boundary; the nearest periodic image along the axes where ``im0, im1, im2`` hold
@@ -119,16 +133,7 @@ def _scan_range(ps, a, b0, b1, sh0, sh1, sh2, im0, im1, im2, thr, order, cand_d,
     for b in range(b0, b1):
         if b == a:
             continue
-        dx = ps[b, 0] + sh0 - xa
-        dy = ps[b, 1] + sh1 - ya
-        dz = ps[b, 2] + sh2 - za
-        if im0 > 0.0:
-            dx -= im0 * np.rint(dx / im0)
-        if im1 > 0.0:
-            dy -= im1 * np.rint(dy / im1)
-        if im2 > 0.0:
-            dz -= im2 * np.rint(dz / im2)
-        d2 = dx * dx + dy * dy + dz * dz
+        d2 = _image_d2(ps[b, 0] + sh0 - xa, ps[b, 1] + sh1 - ya, ps[b, 2] + sh2 - za, im0, im1, im2)
         if d2 < thr:
             cand_d[m] = d2
             cand_j[m] = order[b]
@@ -292,16 +297,7 @@ def _search(pos, radii, period, lo, width, ncell, cutoff_factor, k, max_pairs):
                 b = buf_b[q]
                 if b == a:
                     continue
-                dx = buf_p[q, 0] - xa
-                dy = buf_p[q, 1] - ya
-                dz = buf_p[q, 2] - za
-                if im0 > 0.0:
-                    dx -= im0 * np.rint(dx / im0)
-                if im1 > 0.0:
-                    dy -= im1 * np.rint(dy / im1)
-                if im2 > 0.0:
-                    dz -= im2 * np.rint(dz / im2)
-                d2 = dx * dx + dy * dy + dz * dz
+                d2 = _image_d2(buf_p[q, 0] - xa, buf_p[q, 1] - ya, buf_p[q, 2] - za, im0, im1, im2)
                 if b > a and cutoff_factor > 0.0:
                     rc = (ra + buf_r[q]) * cutoff_factor
                     if d2 < rc * rc:
@@ -320,16 +316,9 @@ def _search(pos, radii, period, lo, width, ncell, cutoff_factor, k, max_pairs):
                 m = 0
                 for q in range(m_buf):
                     if buf_b[q] != a:
-                        dx = buf_p[q, 0] - xa
-                        dy = buf_p[q, 1] - ya
-                        dz = buf_p[q, 2] - za
-                        if im0 > 0.0:
-                            dx -= im0 * np.rint(dx / im0)
-                        if im1 > 0.0:
-                            dy -= im1 * np.rint(dy / im1)
-                        if im2 > 0.0:
-                            dz -= im2 * np.rint(dz / im2)
-                        cand_d[m] = dx * dx + dy * dy + dz * dz
+                        cand_d[m] = _image_d2(
+                            buf_p[q, 0] - xa, buf_p[q, 1] - ya, buf_p[q, 2] - za, im0, im1, im2
+                        )
                         cand_j[m] = order[buf_b[q]]
                         m += 1
             _select(cand_d, cand_j, m, best_d, best_j)
