@@ -12,6 +12,8 @@ Report version 2 (contract 1.3): ``status`` has five values; ``data_quality``,
 ``product_at_risk``, ``product_reading``, ``discriminating_measurement``, ``structure``,
 ``remaining`` and ``noise_tests`` are new; every effect lists its ``equivalents`` and ``side``;
 ``decision`` has ``noise_alpha`` and ``ambiguity_bic`` instead of ``unexplained_nmse``.
+Report version 3 (contract 1.4): ``possible_explanations`` (an ``unexplained`` record's
+candidates that the data supports without a claim; ``product_at_risk`` counts them).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ __all__ = [
     "EffectFound",
     "EffectSpec",
     "Equivalent",
+    "PossibleExplanation",
     "ErrorPair",
     "Errors",
     "MeasurementOption",
@@ -82,6 +85,22 @@ class Equivalent(StrictModel):
     params: dict[str, Finite]
     delta_bic: Finite = Field(description="its whole-record BIC minus the effect's")
     heldout_rel_improvement: Finite | None = None
+    p_value: Finite | None = Field(None, ge=0.0, le=1.0)
+
+
+class PossibleExplanation(StrictModel):
+    """Without a claim, a candidate that passes the statistical part of the claim test on what
+    is left (training BIC below the declared model's, held-out likelihood-ratio p-value below
+    the Bonferroni level) but not the practical margin: supported by the data, not claimed."""
+
+    label: str
+    name: str
+    target: str | None = None
+    side: Side
+    params: dict[str, Finite]
+    delta_bic: Finite = Field(description="its training BIC minus the declared model's")
+    heldout_rel_improvement: Finite | None = None
+    lr_z: Finite | None = None
     p_value: Finite | None = Field(None, ge=0.0, le=1.0)
 
 
@@ -240,17 +259,22 @@ class CandidateScore(StrictModel):
 class CloseLoopReport(StrictModel):
     """The close-loop report (JSON)."""
 
-    version: int = 2
+    version: int = 3
     recording: str
     line: str
     sensor_component: str
     status: Status = Field(description="see schemas.closeloop.Status")
     data_quality: list[DataQualityFlag] = Field(default_factory=list)
     effects: list[EffectFound]
+    possible_explanations: list[PossibleExplanation] = Field(
+        default_factory=list,
+        description="status unexplained: candidates the data supports but that are not claimed",
+    )
     product_at_risk: bool = Field(
         False,
-        description="a probe-side and a product-side explanation are both consistent with the "
-        "data: the product may be off target; the twin acts on product_reading",
+        description="a probe-side and a product-side explanation (claimed with its equivalents, "
+        "or among the possible explanations) are both consistent with the data: the product "
+        "may be off target; the twin acts on product_reading",
     )
     product_reading: ProductReading | None = None
     discriminating_measurement: DiscriminatingMeasurement | None = None
@@ -301,6 +325,7 @@ class ModelFinding(Message):
     t_end_s: NonNegative = Field(description="window end, plant time, s")
     data_quality: list[DataQualityFlag] = Field(default_factory=list)
     effects: list[EffectFound] = Field(default_factory=list)
+    possible_explanations: list[PossibleExplanation] = Field(default_factory=list)
     model_effects: list[EffectSpec] = Field(default_factory=list)
     product_at_risk: bool = False
     product_reading: ProductReading | None = None

@@ -55,6 +55,7 @@ def to_message(f: Finding, line: str, seq: int) -> ModelFinding:
             "t_end_s": f.t_end_s,
             "data_quality": f.data_quality,
             "effects": f.effects,
+            "possible_explanations": f.possible_explanations,
             "model_effects": f.augmented_effects,
             "product_at_risk": f.product_at_risk,
             "product_reading": f.product_reading,

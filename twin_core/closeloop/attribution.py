@@ -9,6 +9,17 @@ probe-side reading says it is fine: ``product_at_risk``. The twin then acts on t
 **product-side reading**: the model in which each probe-side effect of the finding is replaced
 by its best product-side equivalent (refitted jointly on the training window); its outlet is
 what the diverter checks against the specification, and the blender adopts it.
+
+Without a claim the same question is asked of what is left: when the status is
+``unexplained`` (the declared model's innovations fail the noise tests), the candidates of the
+first step that pass every statistical part of the claim test (training BIC
+below the declared model's, held-out likelihood-ratio p-value below the step's Bonferroni level)
+but fall short of the practical margin ``min_improvement`` are the **possible explanations**:
+not claimed (the margin guards against slow noise), but the data supports them. Those within
+``ambiguity_bic`` of the best are listed; when they hold both sides the product is at risk just
+the same, the twin acts on the best product-side one, and the discriminating measurement is
+designed between the best of each side. A residual the library cannot name is never read as
+"the product is fine" when a product-side reading fits it as well as a probe-side one.
 """
 
 from __future__ import annotations
@@ -36,6 +47,8 @@ class Attribution:
     reading: FitResult | None
     probe_reading: FitResult | None = None
     groups: list[list[str]] = field(default_factory=list)
+    #: without a claim: the possible explanations of what is left, best first (docstring)
+    possible: list[FitResult] = field(default_factory=list)
 
     def product_labels(self) -> list[str]:
         """Labels of the product-side reading's effects (empty without one)."""
@@ -69,10 +82,39 @@ def side_reading(ident: Identification, side: str) -> FitResult:
     return refit(ident, effects, labels) if replaced else final
 
 
+def possible_explanations(ident: Identification) -> list[FitResult]:
+    """First-step candidates of an ``unexplained`` identification without a claim that pass
+    the statistical part of the claim test, within ``ambiguity_bic`` of the best (whole-record
+    BIC), best first (module docstring)."""
+    if ident.accepted or ident.status != "unexplained" or not ident.steps:
+        return []
+    step = ident.steps[0]
+    level = ident.options.alpha / max(len(step), 1)
+    ok = [
+        f
+        for f in step
+        if f.converged and f.delta_bic < 0 and f.p_value < level and f.rel_improvement > 0
+    ]
+    if not ok:
+        return []
+    best = min(f.bic_all for f in ok)
+    near = [f for f in ok if f.bic_all - best <= ident.options.ambiguity_bic]
+    return sorted(near, key=lambda f: f.bic_all)
+
+
+def _best_on(fits: list[FitResult], side: str) -> FitResult | None:
+    return next((f for f in fits if effect_side(f.labels[-1]) == side), None)
+
+
 def attribute(ident: Identification) -> Attribution:
     """Product-at-risk and the two readings of an identification (module docstring)."""
     if not ident.accepted:
-        return Attribution(False, None)
+        possible = possible_explanations(ident)
+        product, probe = _best_on(possible, "product"), _best_on(possible, "probe")
+        if product is None or probe is None:
+            return Attribution(False, None, possible=possible)
+        groups = [[f.labels[-1] for f in possible]]
+        return Attribution(True, product, probe, groups, possible)
     groups = [[step.labels[-1], *step.alternatives] for step in ident.accepted]
     at_risk = any({effect_side(lab) for lab in g} == {"probe", "product"} for g in groups)
     if not at_risk:

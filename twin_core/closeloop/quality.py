@@ -22,11 +22,14 @@ the seed's noise gives no flags: measured in ``benchmarks/closeloop_quality.py``
   samples (or values at or beyond a declared instrument range): saturation at the instrument's
   range. A run at the extreme is clipping, not stuck.
 - ``spike_burst``: a cluster of Hampel outliers (``twin_core.rtd.outliers.hampel``, scale
-  floored by the declared noise for the NIR) with >= k outliers in ``burst_window`` samples,
-  k the smallest count whose binomial chance at the background outlier rate (the declared
-  ``outlier_prob`` of the NIR; the series' own rate for a flow) is below
-  ``false_alarm`` / n. Isolated outliers are the seed's noise and are not flagged (the Hampel
-  filter replaces them).
+  floored by the declared noise for the NIR; found again with the found ones left out, up to
+  three passes, since dense spikes inflate each other's scale) with >= k outliers in w samples, scanned at each
+  window length w of ``burst_windows`` (a dense burst inflates the Hampel scale, so only part
+  of its spikes are outliers: a longer window still sees the cluster), k the smallest count
+  whose binomial chance at the background outlier rate (the declared ``outlier_prob`` of the
+  NIR; the series' own rate for a flow) is below ``false_alarm`` / (n x number of windows)
+  (a scan statistic with a Bonferroni bound over positions and window lengths). Isolated
+  outliers are the seed's noise and are not flagged (the Hampel filter replaces them).
 - ``gap``: >= ``min_gap_samples`` expected samples missing (NaN readings; or stamps further
   apart than 1.5 periods with a sequence-number gap).
 - ``time_jump``: stamps going backwards, or further apart than 1.5 periods while the sequence
@@ -43,6 +46,7 @@ from typing import Any
 
 import numpy as np
 from scipy import stats
+from scipy.ndimage import median_filter
 
 from twin_core.closeloop.data import RunData, StreamStamps
 from twin_core.plant.model import LineModel, rtd_kernel
@@ -84,7 +88,10 @@ class QualityOptions:
     min_stuck_samples: int = 10
     stuck_tolerance: float = 0.0
     min_clip_samples: int = 3
-    burst_window: int = 10
+    burst_windows: tuple[int, ...] = (10, 30, 100)
+    #: roughness scan of the NIR (:func:`rough_stretches`): window (samples) and ratio
+    rough_window: int = 30
+    rough_ratio: float = 10.0
     min_gap_samples: int = 3
     false_alarm: float = 1e-3
     #: the NIR's range (% w/w): readings at or beyond it are clipped; None: from the data
@@ -95,8 +102,8 @@ class QualityOptions:
             raise ValueError(f"min_stuck_samples must be >= 3, got {self.min_stuck_samples}")
         if self.min_clip_samples < 2:
             raise ValueError(f"min_clip_samples must be >= 2, got {self.min_clip_samples}")
-        if self.burst_window < 3:
-            raise ValueError(f"burst_window must be >= 3, got {self.burst_window}")
+        if not self.burst_windows or min(self.burst_windows) < 3:
+            raise ValueError(f"burst_windows must be >= 3 samples, got {self.burst_windows}")
         if not 0 < self.false_alarm < 1:
             raise ValueError(f"false_alarm must be in (0, 1), got {self.false_alarm}")
 
@@ -117,6 +124,17 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """[start, end) of each run of True."""
     d = np.diff(np.concatenate([[0], np.asarray(mask, dtype=np.int8), [0]]))
     return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
+
+
+def _merge_runs(runs: list[tuple[int, int]], gap: int) -> list[tuple[int, int]]:
+    """Runs [start, end) merged where fewer than ``gap`` samples separate them."""
+    out: list[tuple[int, int]] = []
+    for a, b in runs:
+        if out and a - out[-1][1] < gap:
+            out[-1] = (out[-1][0], b)
+        else:
+            out.append((a, b))
+    return out
 
 
 def _repeat_runs(x: np.ndarray, tol: float) -> tuple[list[tuple[int, int]], np.ndarray]:
@@ -151,20 +169,56 @@ def stuck_runs(x: np.ndarray, opt: QualityOptions, exempt_zero: bool) -> list[tu
     return out
 
 
-def clipped_runs(
+def clipped_mask(
     x: np.ndarray, opt: QualityOptions, limits: tuple[float, float] | None
-) -> list[tuple[int, int]]:
-    """Runs of samples at the series' extreme value, taken >= ``min_clip_samples`` times, or at
-    or beyond ``limits`` (module docstring, ``clipping``); ``x`` finite."""
+) -> tuple[np.ndarray, list[float]]:
+    """Samples at the series' extreme value, taken >= ``min_clip_samples`` times, or at or
+    beyond ``limits`` (module docstring, ``clipping``), and the clip levels; ``x`` finite."""
     x = np.asarray(x, dtype=float)
     at = np.zeros(x.size, dtype=bool)
+    levels: list[float] = []
     if limits is not None:
         at |= (x <= limits[0]) | (x >= limits[1])
     for extreme in (x.max(), x.min()):
         hit = np.abs(x - extreme) <= opt.stuck_tolerance
-        if hit.sum() >= opt.min_clip_samples:
+        if hit.sum() >= opt.min_clip_samples or (
+            limits is not None and hit.any() and (extreme <= limits[0] or extreme >= limits[1])
+        ):
             at |= hit
-    return _runs(at)
+            levels.append(float(extreme))
+    return at, levels
+
+
+def clipped_runs(
+    x: np.ndarray, opt: QualityOptions, limits: tuple[float, float] | None
+) -> list[tuple[int, int]]:
+    """Runs of clipped samples (:func:`clipped_mask`)."""
+    return _runs(clipped_mask(x, opt, limits)[0])
+
+
+def censored_stretches(
+    x: np.ndarray,
+    clipped: np.ndarray,
+    levels: list[float],
+    sigma: np.ndarray,
+    window: int,
+) -> list[tuple[int, int]]:
+    """Stretches where a clipped reading is censored: the running median of ``window``
+    samples within 3 noise SD of a clip level (there the readings that escaped the clip are
+    the low tail of their distribution, biased towards the inside of the range: a truncated
+    normal), with the clipped samples, merged over gaps shorter than ``window``."""
+    if not levels:
+        return []
+    med = median_filter(np.asarray(x, dtype=float), size=window, mode="nearest")
+    near = clipped.copy()
+    for level in levels:
+        near |= np.abs(med - level) <= 3.0 * sigma
+    hot = near.copy()
+    runs = _runs(near)
+    for (_, b0), (a1, _) in zip(runs[:-1], runs[1:]):
+        if a1 - b0 < window:
+            hot[b0:a1] = True
+    return [(a, b) for a, b in _runs(hot) if clipped[a:b].any()]
 
 
 def burst_threshold(window: int, rate: float, n: int, false_alarm: float) -> int:
@@ -174,6 +228,66 @@ def burst_threshold(window: int, rate: float, n: int, false_alarm: float) -> int
         if stats.binom.sf(k - 1, window, rate) < false_alarm / max(n, 1):
             return k
     return window + 1
+
+
+def iterated_outliers(x: np.ndarray, min_scale: np.ndarray | float, passes: int = 3) -> np.ndarray:
+    """Hampel outliers (``pearson`` variant, scale floored by ``min_scale``) found again with
+    the ones already found left out, up to ``passes`` times: in a dense burst the spikes
+    inflate each other's local scale, so one pass finds only some of them."""
+    x = np.asarray(x, dtype=float)
+    out = np.zeros(x.size, dtype=bool)
+    for _ in range(passes):
+        found = hampel(np.where(out, np.nan, x), variant="pearson", min_scale=min_scale).mask
+        new = found & ~out
+        if not new.any():
+            break
+        out |= new
+    return out
+
+
+def rough_stretches(
+    x: np.ndarray, sigma: np.ndarray, window: int, ratio: float
+) -> list[tuple[int, int]]:
+    """Stretches of a reading rougher than its noise allows: the mean over ``window`` samples
+    of the squared second differences d_i = x_(i+1) - 2 x_i + x_(i-1), divided by their noise
+    expectation 6 sigma_i^2 (white noise; the 1/f part and a signal smooth over a few samples
+    add little), above ``ratio``. ``x`` without its isolated outliers (a spike s adds 6 s^2);
+    NaN marks samples to ignore.
+    Finds a spike burst too dense for the Hampel identifier: the statistic is a mean of
+    ~window/2 effectively independent chi-square(1) terms, so a ratio of 10 over 30 samples is
+    out of reach of the noise (chi-square(15) > 150); an isolated outlier that escaped the
+    Hampel filter adds about 6 s^2 / (6 sigma^2 window), < 10 for s < 17 sigma. Each stretch
+    is trimmed to its samples with d_i^2 > 9 (6 sigma^2) and their neighbours."""
+    x = np.asarray(x, dtype=float)
+    if x.size < window + 2:
+        return []
+    d2 = np.zeros(x.size)
+    d2[1:-1] = (x[2:] - 2.0 * x[1:-1] + x[:-2]) ** 2 / (6.0 * np.asarray(sigma)[1:-1] ** 2)
+    d2 = np.nan_to_num(d2, nan=0.0)  # NaN: samples left out by the caller
+    mean = np.convolve(d2, np.ones(window) / window, mode="same")
+    half = window // 2
+    out = []
+    for a, b in _runs(mean > ratio):
+        lo, hi = max(a - half, 0), min(b + half, x.size)
+        rough = lo + np.flatnonzero(d2[lo:hi] > 9.0)
+        if rough.size:
+            out.append((max(int(rough[0]) - 1, 0), min(int(rough[-1]) + 2, x.size)))
+    return out
+
+
+def burst_runs(
+    outliers: np.ndarray, rate: float, opt: QualityOptions
+) -> list[tuple[int, int, int]]:
+    """Clusters of outliers at any window length of ``opt.burst_windows`` (module docstring,
+    ``spike_burst``), merged: (start, end, outlier count)."""
+    n = outliers.size
+    fa = opt.false_alarm / len(opt.burst_windows)
+    hot = np.zeros(n, dtype=bool)
+    for w in opt.burst_windows:
+        k = burst_threshold(w, rate, n, fa)
+        for a, b, _ in spike_bursts(outliers, w, k):
+            hot[a:b] = True
+    return [(a, b, int(outliers[a:b].sum())) for a, b in _runs(hot)]
 
 
 def spike_bursts(outliers: np.ndarray, window: int, k: int) -> list[tuple[int, int, int]]:
@@ -238,6 +352,16 @@ class _Checker:
         self.flags: list[DataFlag] = []
         self.exclude = np.zeros(self.t.size, dtype=bool)
         self.span = lot_span_s(model, self.dt)
+        #: per series, the (t_start, t_end) of its stamp gaps (samples held over, not stuck)
+        self.gaps: dict[str, list[tuple[float, float]]] = {}
+
+    def in_gap(self, series: str, a: int, b: int) -> bool:
+        """Whether samples [a, b) are a stamp gap of the series (the value held over it and
+        the last sample before it)."""
+        ta, tb = self.t[a] + self.dt, self.t[b - 1]
+        return any(
+            g0 - self.dt <= ta and tb <= g1 + self.dt for g0, g1 in self.gaps.get(series, [])
+        )
 
     def flag(self, kind: str, series: str, a: int, b: int, n: int, reach: float) -> None:
         """Flag samples [a, b) of a series on the record's grid; leave out the outlet samples
@@ -262,21 +386,33 @@ class _Checker:
                     self.flag("gap", NIR, a, b, n_missing, 0.0)
         idx = np.flatnonzero(finite)
         x = y[idx]
-        clipped = clipped_runs(x, self.opt, self.opt.nir_range)
+        pred = self.model.predict(self.data.inputs)[idx]
+        sigma = noise_sd(pred, noise)
+        at_clip, levels = clipped_mask(x, self.opt, self.opt.nir_range)
         clip_mask = np.zeros(x.size, dtype=bool)
-        for a, b in clipped:
+        window = max(self.opt.burst_windows)
+        for a, b in censored_stretches(x, at_clip, levels, sigma, window):
             clip_mask[a:b] = True
-            self.flag("clipping", NIR, idx[a], idx[b - 1] + 1, b - a, 0.0)
+            self.flag("clipping", NIR, idx[a], idx[b - 1] + 1, int(at_clip[a:b].sum()), 0.0)
         for a, b in stuck_runs(x, self.opt, exempt_zero=False):
             if clip_mask[a:b].any():
                 continue
             self.flag("stuck", NIR, idx[a], idx[b - 1] + 1, b - a, 0.0)
-        sigma = noise_sd(self.model.predict(self.data.inputs)[idx], noise)
-        out = hampel(x, variant="pearson", min_scale=sigma).mask
+        # outliers and roughness of the residual of the declared model: the tracer peaks'
+        # own shape (which also hides an outlier on a peak from a Hampel window on the
+        # reading) is the model's, not the noise's
+        resid = x - pred
+        out = iterated_outliers(resid, sigma) & ~clip_mask
         rate = max(noise.outlier_prob, 1e-4)
-        k = burst_threshold(self.opt.burst_window, rate, x.size, self.opt.false_alarm)
-        for a, b, n_out in spike_bursts(out, self.opt.burst_window, k):
-            self.flag("spike_burst", NIR, idx[a], idx[b - 1] + 1, n_out, 0.0)
+        hot = np.zeros(x.size, dtype=bool)
+        for a, b, _ in burst_runs(out, rate, self.opt):
+            hot[a:b] = True
+        resid[out | clip_mask] = np.nan  # outliers and clip edges are not roughness
+        for a, b in rough_stretches(resid, sigma, self.opt.rough_window, self.opt.rough_ratio):
+            hot[a:b] = True
+        gap = min(self.opt.burst_windows)
+        for a, b in _merge_runs(_runs(hot), gap):
+            self.flag("spike_burst", NIR, idx[a], idx[b - 1] + 1, b - a, 0.0)
 
     def flows(self) -> None:
         """Every feeder's reported flow: stuck runs (not while refilling), clipping, spike
@@ -289,6 +425,8 @@ class _Checker:
             for a, b in runs:
                 if refill is not None and refill.size and refill[a:b].all():
                     continue
+                if self.in_gap(name, a, b):
+                    continue
                 self.flag("stuck", name, a, b, b - a, self.span)
             if np.ptp(q) > 0:
                 for a, b in clipped_runs(q, self.opt, None):
@@ -297,8 +435,7 @@ class _Checker:
                     self.flag("clipping", name, a, b, b - a, self.span)
             res = hampel(q, variant="seed")
             rate = max(res.count / q.size, 1e-4)
-            k = burst_threshold(self.opt.burst_window, rate, q.size, self.opt.false_alarm)
-            for a, b, n_out in spike_bursts(res.mask, self.opt.burst_window, k):
+            for a, b, n_out in burst_runs(res.mask, rate, self.opt):
                 self.flag("spike_burst", name, a, b, n_out, self.span)
 
     def stamps(self) -> None:
@@ -311,6 +448,8 @@ class _Checker:
             for f in flags:
                 if f.kind == "gap" and f.n_samples < self.opt.min_gap_samples:
                     continue
+                if f.kind == "gap":
+                    self.gaps.setdefault(series, []).append((f.t_start_s, f.t_end_s))
                 self.flags.append(f)
                 end = math.inf if f.kind == "time_jump" else f.t_end_s + reach
                 self.exclude |= (self.t >= min(f.t_start_s, f.t_end_s)) & (self.t <= end)
@@ -322,9 +461,9 @@ def check_data_quality(
     """Flag the data faults of a record and the samples to leave out (module docstring)."""
     opt = options or QualityOptions()
     c = _Checker(data, model, opt)
+    c.stamps()
     c.nir()
     c.flows()
-    c.stamps()
     flags = sorted(c.flags, key=lambda f: (f.t_start_s, f.series, f.kind))
     per: dict[str, int] = {}
     for f in flags:

@@ -163,7 +163,15 @@ class LineRecord:
         rec = cls(components, dt_s, sensor_component, max_lag=1 << 30)
         for key, msg in messages:
             rec.add_message(key, msg)
+        rec.finish()
         return rec
+
+    def finish(self) -> None:
+        """The record is complete: release the ticks still waiting for a feeder (a feeder's
+        dropout would otherwise hold back every later tick); its missing samples stay missing
+        (held over in :meth:`arrays`, flagged as a gap by the data-quality check)."""
+        for tt, row in self._aligner.flush():
+            self._ticks[self.tick(tt)] = row
 
     # -- output ------------------------------------------------------------------------------
     def last_complete_tick(self) -> int | None:
@@ -187,9 +195,8 @@ class LineRecord:
             r = np.zeros(ks.size, dtype=bool)
             s = np.full(ks.size, np.nan)
             for i, k in enumerate(ks):
-                row = self._ticks.get(int(k))
-                if row is not None:
-                    v = row[f]
+                v = self._ticks.get(int(k), {}).get(f)
+                if v is not None:
                     q[i], r[i], s[i] = v.flow_kg_h, v.refilling, v.screw_speed_rpm
             good = np.isfinite(q)
             if not good.any():

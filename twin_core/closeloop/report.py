@@ -42,7 +42,7 @@ from twin_core.closeloop.identify import (
 from twin_core.closeloop.quality import DataQuality, QualityOptions, check_data_quality
 from twin_core.plant.model import LineInputs, LineModel
 
-REPORT_VERSION = 2
+REPORT_VERSION = 3
 
 
 def _clean(x: Any) -> Any:
@@ -117,6 +117,30 @@ def _equivalent_entries(step: FitResult) -> list[dict[str, Any]]:
                 "params": dict(e.values),
                 "delta_bic": f.bic_all - step.bic_all,
                 "heldout_rel_improvement": f.rel_improvement,
+                "p_value": f.p_value,
+            }
+        )
+    return out
+
+
+def _possible_entries(attribution: Attribution | None) -> list[dict[str, Any]]:
+    """The possible explanations of an unexplained record (``schemas.closeloop.
+    PossibleExplanation``; ``twin_core.closeloop.attribution``)."""
+    if attribution is None:
+        return []
+    out = []
+    for f in attribution.possible:
+        e = f.effects[-1]
+        out.append(
+            {
+                "label": f.labels[-1],
+                "name": e.name,
+                "target": e.target,
+                "side": effect_side(f.labels[-1]),
+                "params": dict(e.values),
+                "delta_bic": f.delta_bic,
+                "heldout_rel_improvement": f.rel_improvement,
+                "lr_z": f.lr_z,
                 "p_value": f.p_value,
             }
         )
@@ -284,6 +308,7 @@ class CloseLoopResult:
                 "status": self.status,
                 "data_quality": self.quality.to_list() if self.quality is not None else [],
                 "effects": self.effect_entries(),
+                "possible_explanations": _possible_entries(self.attribution),
                 "product_at_risk": self.product_at_risk,
                 "product_reading": self.product_reading(),
                 "discriminating_measurement": (
@@ -483,6 +508,7 @@ class Finding:
     discriminating_measurement: dict[str, Any] | None = None
     structure: list[dict[str, Any]] = field(default_factory=list)
     remaining: str = ""
+    possible_explanations: list[dict[str, Any]] = field(default_factory=list)
 
 
 def online_finding(
@@ -523,4 +549,5 @@ def online_finding(
         discriminating_measurement=rep["discriminating_measurement"],
         structure=rep["structure"],
         remaining=rep["remaining"],
+        possible_explanations=rep["possible_explanations"],
     )

@@ -145,6 +145,16 @@ class InletAligner:
             self._next = k + 1
         return out
 
+    def flush(self) -> list[tuple[float, dict[str, Any]]]:
+        """Release every pending tick in time order, as it is: a feeder whose sample never
+        came is missing from its row (no value held in its place). For the end of a complete
+        record, where a feeder's gap must not hold back every later tick."""
+        out = [(k * self.dt, self._pending[k]) for k in sorted(self._pending)]
+        if out:
+            self._next = int(round(out[-1][0] / self.dt)) + 1
+        self._pending.clear()
+        return out
+
 
 def event_record(event: Any) -> dict[str, Any]:
     """The dict form of a plant event (a ``schemas.messages.Event``): ``t_s``, ``kind``,

@@ -288,7 +288,7 @@ class ApiWallLoss(OpenWorldEffect):
     name = "api_wall_loss"
     stage = "blender"
     side = "product"
-    aliases = ("api_loss", "api_lost", "material_loss", "api_holdup", "holdup_loss")
+    aliases = ("component_loss", "api_loss", "api_lost", "material_loss", "holdup_loss")
     doc = "a fraction lambda of the API is lost in the blender (first-order wall loss)"
     params = (
         ParamSpec("loss_fraction", 0.0, 0.0, 0.9, "1", "fraction of the API lost at steady state"),

@@ -496,7 +496,7 @@ def _overlaps(entry: Mapping[str, Any], truth: Mapping[str, Any], margin: float)
 def _effect_outcome(status: str, claimed: Sequence[str], listed: set[str], names: set[str]) -> str:
     if any(c in names for c in claimed):
         return "right"
-    if listed & names:
+    if claimed and listed & names:
         return "right_equivalent"
     if claimed:
         return "wrong_confident" if status == "explained" else "wrong_partial"
@@ -506,7 +506,8 @@ def _effect_outcome(status: str, claimed: Sequence[str], listed: set[str], names
 def score_report(report: Mapping[str, Any], truth: Mapping[str, Any]) -> dict[str, Any]:
     """Score a close-loop report (dict) against a case's truth (:func:`run_case`).
 
-    Returns ``status``, ``claimed`` (names), ``listed`` (claimed and their equivalents),
+    Returns ``status``, ``claimed`` (names), ``listed`` (claimed and their equivalents, and an
+    unexplained record's ``possible_explanations``),
     ``equivalents_field``, ``outcome`` and the fields of the family:
 
     - every family: ``outcome`` ``right`` (the truth, or one of its aliases, claimed),
@@ -529,6 +530,9 @@ def score_report(report: Mapping[str, Any], truth: Mapping[str, Any]) -> dict[st
         names, key = _equivalents(e)
         listed.update(names)
         eq_field = eq_field or key
+    listed.update(
+        _name(e) for e in (report.get("possible_explanations") or []) if isinstance(e, Mapping)
+    )
     family = truth["family"]
     names = set(truth.get("truth_names") or [truth["truth"]])
     out: dict[str, Any] = {
