@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -249,6 +250,9 @@ def main() -> int:
     only = tuple(x for x in args.only.split(",") if x)
     todo = [s for s in range(args.first_seed, args.first_seed + args.seeds) if s not in seen]
     if args.summary_only:
+        if not done:
+            print(f"error: no rows in {out} to summarise, --out={str(out)!r}", file=sys.stderr)
+            return 2
         todo = []
     with (
         row_appender(out, FIELDS, done) as append,
