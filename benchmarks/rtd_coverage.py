@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 from machine import describe
+from scipy import stats
 from tqdm import tqdm
 
 from twin_core.quality.analysis import analyze
@@ -42,7 +43,7 @@ from twin_core.quality.lots import quantile_time
 from twin_core.rtd import virtual as V
 from twin_core.rtd.denoise import denoise
 from twin_core.rtd.fitting import fit
-from twin_core.rtd.likelihood import fit_candidates
+from twin_core.rtd.likelihood import LACK_OF_FIT_ALPHA, NoiseModel, fit_candidates, fit_raw
 from twin_core.rtd.models import MODELS, get_model
 from twin_core.rtd.outliers import hampel
 from twin_core.rtd.pipeline import Preprocessing, fit_profile
@@ -217,6 +218,63 @@ def coverage_task(task: tuple[str, str, int]) -> dict:
     return row
 
 
+def adequacy_task(task: tuple[str, str, int]) -> dict:
+    """One profile (the same as :func:`coverage_task`'s): AD fitted, its lack-of-fit tests."""
+    name, noise, i = task
+    truth = next(x for x in TRUTHS if x.name == name)
+    c, q = _truth_data(truth)
+    y, _ = V.measure(c, NOISE[noise], _rng(name, noise, i))
+    t0 = time.perf_counter()
+    ad = fit_profile(from_arrays(T, y, name=f"{name}_{noise}_{i}"), "ad_open")
+    lof = ad.fit.lack_of_fit
+    return {
+        "truth": name,
+        "noise": noise,
+        "i": i,
+        "ad_seconds": time.perf_counter() - t0,
+        "ad_adequate": ad.fit.adequate,
+        "ad_p": lof.p_value,
+        "ad_tests": {x.name: [x.statistic, x.p_value] for x in lof.tests},
+        "ad_mrt_error_pct": 100
+        * (ad.moments["mean_residence_time_s"].value / q["mean_residence_time_s"] - 1),
+    }
+
+
+def exchange_noncentrality(truth: Truth, noise: str) -> float:
+    """delta = min over AD of |L^-1 (c - mu_AD)|^2: the whitened misfit of the best AD fit to
+    the noise-free truth c (with the offset) under its true noise covariance (white, 1/f,
+    proportional of ``NOISE[noise]``; the model's 1/f correlation). It is the noncentrality of
+    the likelihood ratio of AD against the truth's own family, so no test of AD at one-sided
+    level a has a power above Phi(sqrt(delta) - z_a) on profiles of this truth."""
+    c, _ = _truth_data(truth)
+    spec = NOISE[noise]
+    nm = NoiseModel(spec.white**2, spec.pink**2, spec.proportional**2)
+    ad = fit_raw(T, c + spec.offset_mean, "ad_open", noise=nm, screen=False, extension=False)
+    return ad.chi2
+
+
+def noncentrality_table() -> str:
+    """Markdown table: the stagnant-zone truths' noncentrality and the power it allows."""
+    level = LACK_OF_FIT_ALPHA / 2
+    z = float(stats.norm.isf(level))
+    lines = [
+        "| truth | noise | delta | sqrt(delta) | power bound at one-sided "
+        f"{100 * level:g} % | at 5 % |",
+        "|---|---|---|---|---|---|",
+    ]
+    for truth in TRUTHS:
+        if truth.family is not None:
+            continue
+        for noise in NOISE:
+            d = exchange_noncentrality(truth, noise)
+            bound = [stats.norm.cdf(np.sqrt(d) - x) for x in (z, stats.norm.isf(0.05))]
+            lines.append(
+                f"| {truth.name} | {noise} | {d:.1f} | {np.sqrt(d):.2f} | "
+                f"{100 * bound[0]:.0f} | {100 * bound[1]:.0f} |"
+            )
+    return "\n".join(lines)
+
+
 def selection_task(task: tuple[str, str, int]) -> dict:
     """One profile: every registered model ranked by BIC."""
     name, noise, i = task
@@ -263,6 +321,14 @@ def _pct(x: list[bool]) -> str:
     return f"{100 * np.mean(x):.1f}" if x else "-"
 
 
+def _pct_sd(x: list[bool]) -> str:
+    """Share in % with its binomial sd, 100 sqrt(p (1 - p) / n)."""
+    if not x:
+        return "-"
+    p = float(np.mean(x))
+    return f"{100 * p:.1f} ({100 * np.sqrt(p * (1 - p) / len(x)):.1f})"
+
+
 def coverage_tables(rows: list[dict]) -> str:
     """Markdown tables: coverage per truth and noise, old pipeline, adequacy."""
     keys = ["mean_residence_time_s", "variance_s2", "t_lo_s", "t_hi_s"]
@@ -271,10 +337,6 @@ def coverage_tables(rows: list[dict]) -> str:
         "| truth | noise | n | parameters (each) | MRT | variance | t_lo | t_hi | feasible frac. | "
         "h_crit(10 s) | old pipeline (each) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    ade = [
-        "| truth | noise | n | AD flagged inadequate % | AD MRT error % (median) |",
-        "|---|---|---|---|---|",
     ]
     for truth in TRUTHS:
         for noise in NOISE:
@@ -286,12 +348,21 @@ def coverage_tables(rows: list[dict]) -> str:
                 olds = " / ".join(_pct([o[k] for o in old]) for k in truth.params)
                 cells = " | ".join(_pct([r["covered"][k] for r in ok]) for k in keys)
                 lines.append(f"| {truth.name} | {noise} | {len(ok)} | {pars} | {cells} | {olds} |")
-            if sub:
-                ade.append(
-                    f"| {truth.name} | {noise} | {len(sub)} | "
-                    f"{_pct([not r['ad_adequate'] for r in sub])} | "
-                    f"{np.median([r['ad_mrt_error_pct'] for r in sub]):+.1f} |"
-                )
+    lines += [
+        "",
+        "Pooled over the truths:",
+        "",
+        "| noise | profiles | parameters | MRT | variance | t_lo | t_hi | feasible frac. | "
+        "h_crit(10 s) | old pipeline, parameters |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for noise in NOISE:
+        ok = [r for r in rows if r["noise"] == noise and "covered" in r]
+        if ok:
+            pars = [v for r in ok for k, v in r["covered"].items() if k not in keys]
+            cells = " | ".join(_pct_sd([r["covered"][k] for r in ok]) for k in keys)
+            old = [v for r in ok if r.get("old") for v in r["old"].values()]
+            lines.append(f"| {noise} | {len(ok)} | {_pct_sd(pars)} | {cells} | {_pct_sd(old)} |")
     errors = [r for r in rows if "error" in r]
     tail = [f"\nprofiles refused: {len(errors)}"] + [
         f"  {r['truth']} {r['error']}" for r in errors[:5]
@@ -301,7 +372,38 @@ def coverage_tables(rows: list[dict]) -> str:
         f"analyze wall time per profile: median {np.median(secs):.2f} s, 95th percentile "
         f"{np.percentile(secs, 95):.2f} s"
     )
-    return "\n".join(lines + [""] + ade + tail)
+    return "\n".join(lines + tail)
+
+
+def adequacy_tables(rows: list[dict]) -> str:
+    """Markdown table: share of profiles whose AD fit is flagged inadequate (binomial sd),
+    by each test, and the AD mean residence time error; pure AD pooled per noise setting."""
+    lines = [
+        "| truth | noise | n | AD flagged inadequate % (sd) | shape test % | exchange / tail "
+        "test % | AD MRT error % (median) | AD fit + tests, s (median) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    groups = [(t.name, [t.name]) for t in TRUTHS]
+    groups.append(("pure AD", [t.name for t in TRUTHS if t.name.startswith("ad_")]))
+    for label, names in groups:
+        for noise in NOISE:
+            sub = [r for r in rows if r["truth"] in names and r["noise"] == noise]
+            if not sub:
+                continue
+            tests = [r.get("ad_tests", {}) for r in sub]
+            alpha = LACK_OF_FIT_ALPHA / max([len(x) for x in tests] + [1])
+            by_test = {
+                k: _pct([x[k][1] < alpha for x in tests if k in x])
+                for k in ("shape", "exchange", "tail")
+            }
+            lines.append(
+                f"| {label} | {noise} | {len(sub)} | "
+                f"{_pct_sd([not r['ad_adequate'] for r in sub])} | {by_test['shape']} | "
+                f"{by_test['exchange'] if by_test['exchange'] != '-' else by_test['tail']} | "
+                f"{np.median([r['ad_mrt_error_pct'] for r in sub]):+.1f} | "
+                f"{np.median([r['ad_seconds'] for r in sub]):.1f} |"
+            )
+    return "\n".join(lines)
 
 
 def selection_tables(rows: list[dict]) -> str:
@@ -334,14 +436,27 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--selection", type=int, default=25, help="profiles for model selection")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("out/rtd_coverage"))
+    ap.add_argument(
+        "--adequacy-only",
+        action="store_true",
+        help="only the AD fit and its lack-of-fit tests on the same profiles (adequacy.jsonl)",
+    )
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     print(describe())
     prepare_truths(args.out / "truths.json", args.jobs)
     # profile index outermost: a campaign stopped early is balanced across truths and noises
     tasks = [(t.name, n, i) for i in range(args.profiles) for t in TRUTHS for n in NOISE]
+    if args.adequacy_only:
+        # the AD and stagnant-zone truths (size and power of the test) before the others
+        tasks.sort(key=lambda x: x[0] in ("tis_n4", "emg"))
+        rows = _run(args.out / "adequacy.jsonl", tasks, adequacy_task, args.jobs, "adequacy")
+        print(adequacy_tables(rows))
+        print(noncentrality_table())
+        return
     rows = _run(args.out / "coverage.jsonl", tasks, coverage_task, args.jobs, "coverage")
     print(coverage_tables(rows))
+    print(adequacy_tables(rows))
     sel = [(t, n, i) for i in range(args.selection) for t in SELECTION for n in NOISE]
     srows = _run(args.out / "selection.jsonl", sel, selection_task, args.jobs, "selection")
     print(selection_tables(srows))
