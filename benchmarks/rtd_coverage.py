@@ -380,8 +380,8 @@ def adequacy_tables(rows: list[dict]) -> str:
     by each test, and the AD mean residence time error; pure AD pooled per noise setting."""
     lines = [
         "| truth | noise | n | AD flagged inadequate % (sd) | shape test % | exchange / tail "
-        "test % | AD MRT error % (median) | AD fit + tests, s (median) |",
-        "|---|---|---|---|---|---|---|---|",
+        "test % | exchange p < 5 % | AD MRT error % (median) | AD fit + tests, s (median) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     groups = [(t.name, [t.name]) for t in TRUTHS]
     groups.append(("pure AD", [t.name for t in TRUTHS if t.name.startswith("ad_")]))
@@ -400,6 +400,7 @@ def adequacy_tables(rows: list[dict]) -> str:
                 f"| {label} | {noise} | {len(sub)} | "
                 f"{_pct_sd([not r['ad_adequate'] for r in sub])} | {by_test['shape']} | "
                 f"{by_test['exchange'] if by_test['exchange'] != '-' else by_test['tail']} | "
+                f"{_pct([x['exchange'][1] < 0.05 for x in tests if 'exchange' in x])} | "
                 f"{np.median([r['ad_mrt_error_pct'] for r in sub]):+.1f} | "
                 f"{np.median([r['ad_seconds'] for r in sub]):.1f} |"
             )
