@@ -1,7 +1,7 @@
 """Coverage, adequacy and model-selection campaign of the RTD fits (docs/rtd.md).
 
 Run: python benchmarks/rtd_coverage.py [--profiles 100] [--selection 25] [--out DIR]
-[--jobs 2]. Resumable: every simulated profile is one line of DIR/coverage.jsonl or
+[--jobs 2] [--adequacy-only]. Resumable: every simulated profile is one line of DIR/coverage.jsonl or
 DIR/selection.jsonl; a rerun skips the lines already there and prints the tables.
 
 Truths come from code paths independent of ``rtd.models`` (``rtd.virtual``): axial
@@ -17,7 +17,9 @@ Per profile and noise setting:
   time, variance, lot boundaries, feasible fraction and h_crit at 10 s) covers the truth or not;
   the documented pipeline before (outliers, auto denoise, PAT truncation, ``fitting.fit`` on E)
   is scored on the same profile for comparison;
-- adequacy: AD (``ad_open``) fitted to every profile; share flagged inadequate;
+- adequacy: AD (``ad_open``) fitted to every profile; share flagged inadequate, by each
+  test; ``--adequacy-only`` runs only this on the same profiles (DIR/adequacy.jsonl) and
+  prints the noncentrality that bounds any test's power on each stagnant zone;
 - selection (``--selection`` profiles of some truths): every registered model ranked by BIC;
   the selected model's family and parameter count, the time of the slowest candidate.
 """
