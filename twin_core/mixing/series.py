@@ -179,7 +179,8 @@ def compute_indices(
     order_ids = np.sort(np.asarray(first.ids))
     if len(np.unique(order_ids)) != len(order_ids):
         raise ValueError("particle ids of the first frame are not unique")
-    types0, radii0, pos0 = _aligned(first, order_ids)
+    # the reference frame is kept: copies, which frames reusing their arrays cannot overwrite
+    types0, radii0, pos0 = (np.array(x) for x in _aligned(first, order_ids))
     state = _Reference(pos0, types0, radii0, config, names)
     rows = [state.row(first.t, types0, radii0, pos0)]
     for frame in frames:
