@@ -14,34 +14,46 @@ def contact_type_counts(pairs: np.ndarray, types: np.ndarray, tracer: int) -> tu
     """Numbers of AA, AB and BB contact pairs (each pair counted once)."""
     if len(pairs) == 0:
         return 0, 0, 0
-    a = np.asarray(types)[pairs] == tracer
-    n_aa = int(np.sum(a[:, 0] & a[:, 1]))
-    n_bb = int(np.sum(~a[:, 0] & ~a[:, 1]))
-    return n_aa, len(pairs) - n_aa - n_bb, n_bb
+    is_a = (np.asarray(types) == tracer).astype(np.int8)
+    n_a = is_a[pairs[:, 0]] + is_a[pairs[:, 1]]  # tracer particles in each pair: 0, 1 or 2
+    n_bb, n_ab, n_aa = np.bincount(n_a, minlength=3)[:3].tolist()
+    return n_aa, n_ab, n_bb
 
 
-def coordination_number_index(pairs: np.ndarray, types: np.ndarray, tracer: int) -> float:
+def coordination_number_index(
+    pairs: np.ndarray,
+    types: np.ndarray,
+    tracer: int,
+    counts: tuple[int, int, int] | None = None,
+) -> float:
     """CN = C_AB / (C_AA + C_BB), contact pairs counted once (seed Eq. 17).
 
     0 segregated (only interface contacts), ~1 for a random 50:50 mixture (a random mixture of
     tracer fraction p gives 2 p (1 - p) / (p^2 + (1 - p)^2)).
     Reference: seed Eq. (17); Deen et al., Chem. Eng. Sci. 65 (2010) 1 (contact counting).
+    ``counts``: the :func:`contact_type_counts` of these pairs when already known.
     """
-    aa, ab, bb = contact_type_counts(pairs, types, tracer)
+    aa, ab, bb = contact_type_counts(pairs, types, tracer) if counts is None else counts
     if aa + bb == 0:
         raise ValueError("no like-type contacts: CN undefined")
     return ab / (aa + bb)
 
 
-def segregation_index(pairs: np.ndarray, types: np.ndarray, tracer: int) -> float:
+def segregation_index(
+    pairs: np.ndarray,
+    types: np.ndarray,
+    tracer: int,
+    counts: tuple[int, int, int] | None = None,
+) -> float:
     """SI = C_AA/(C_AA + C_AB) + C_BB/(C_BB + C_AB) (seed Eq. 15).
 
     Counting convention: C_AA (C_BB) counts like-type contacts from both particles (2 per pair),
     C_AB once per pair, so that "the total number of contacts made by particles of A type equals
     C_AA + C_AB" as the seed states. Then SI = 2 segregated, 1 random mixture (any fraction),
-    0 perfectly ordered (alternating).
+    0 perfectly ordered (alternating). ``counts``: the :func:`contact_type_counts` of these
+    pairs when already known.
     """
-    aa, ab, bb = contact_type_counts(pairs, types, tracer)
+    aa, ab, bb = contact_type_counts(pairs, types, tracer) if counts is None else counts
     if aa + ab == 0 or bb + ab == 0:
         raise ValueError("a type has no contacts: SI undefined")
     return 2 * aa / (2 * aa + ab) + 2 * bb / (2 * bb + ab)
@@ -65,8 +77,8 @@ def particle_scale_index(pairs: np.ndarray, types: np.ndarray, tracer: int) -> f
     cn = np.bincount(pairs.ravel(), minlength=n).astype(float)
     n_a = is_a.copy()
     if len(pairs):
-        np.add.at(n_a, pairs[:, 0], is_a[pairs[:, 1]])
-        np.add.at(n_a, pairs[:, 1], is_a[pairs[:, 0]])
+        n_a += np.bincount(pairs[:, 0], is_a[pairs[:, 1]], n)
+        n_a += np.bincount(pairs[:, 1], is_a[pairs[:, 0]], n)
     p_i = n_a / (cn + 1.0)
     p = is_a.mean()
     if not 0 < p < 1:
@@ -85,4 +97,4 @@ def nearest_neighbour_index(neighbours: np.ndarray, types: np.ndarray) -> float:
     """
     types = np.asarray(types)
     diff = types[neighbours] != types[:, None]
-    return float(np.mean(2.0 * diff.sum(axis=1) / neighbours.shape[1]))
+    return float(2.0 * np.count_nonzero(diff) / diff.size)

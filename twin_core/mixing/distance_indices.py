@@ -33,11 +33,16 @@ def average_height(
     sel = np.asarray(types) == tracer
     if not sel.any():
         raise ValueError(f"no particle of tracer type {tracer}")
-    w = np.ones(len(h)) if weights is None else np.asarray(weights, float)
-    mean_all = np.sum(w * h) / w.sum()
+    if weights is None:
+        mean_all = h.sum() / len(h)
+        mean_tracer = h[sel].sum() / np.count_nonzero(sel)
+    else:
+        w = np.asarray(weights, float)
+        mean_all = np.sum(w * h) / w.sum()
+        mean_tracer = np.sum(w[sel] * h[sel]) / w[sel].sum()
     if mean_all == 0:
         raise ValueError("mean height of all particles is zero: choose an origin below the bed")
-    return float(np.sum(w[sel] * h[sel]) / w[sel].sum() / mean_all)
+    return float(mean_tracer / mean_all)
 
 
 def centroid(positions: np.ndarray, weights: np.ndarray | None = None, box=None) -> np.ndarray:
@@ -47,7 +52,10 @@ def centroid(positions: np.ndarray, weights: np.ndarray | None = None, box=None)
     boundaries)."""
     pos = np.asarray(positions, float)
     w = np.ones(len(pos)) if weights is None else np.asarray(weights, float)
-    out = np.sum(w[:, None] * pos, axis=0) / w.sum()
+    if weights is None:
+        out = pos.sum(axis=0) / len(pos)
+    else:
+        out = np.sum(w[:, None] * pos, axis=0) / w.sum()
     period = _box_array(box)
     for ax in np.flatnonzero(period > 0):
         angle = 2 * math.pi * pos[:, ax] / period[ax]
@@ -61,8 +69,10 @@ def spreading_radius(positions: np.ndarray, weights: np.ndarray | None = None, b
     volume-weighted with ``weights``)."""
     pos = np.asarray(positions, float)
     c = centroid(pos, weights, box)
-    d = minimum_image_distance(np.broadcast_to(c, pos.shape), pos, box)
-    w = np.ones(len(pos)) if weights is None else np.asarray(weights, float)
+    d = minimum_image_distance(c, pos, box)
+    if weights is None:
+        return float(d.sum() / len(d))
+    w = np.asarray(weights, float)
     return float(np.sum(w * d) / w.sum())
 
 

@@ -3,7 +3,8 @@
 One cell-list pass (numba, one thread) finds both: the contact pairs and the ``k`` nearest
 neighbours of every particle. Particles are binned into cells about the contact cut-off
 ``2 r_max (1 + tolerance)`` wide; the particles of the 27 cells around each cell are gathered
-once and compared with every particle of the cell, which finds every contact; a particle
+once and compared with every particle of the cell, which finds every contact, and the same
+distances give the neighbour candidates (one pass for NNM, PS, CN and SI); a particle
 whose ``k``-th nearest candidate lies beyond the reach of those cells (free surface, flying
 particle) is searched again over growing blocks of cells, so contacts and neighbours are exact
 (the same pairs and sets as a KD-tree, ``tests/twin_core/mixing/test_mixing_indices.py``).
@@ -28,14 +29,27 @@ def _periods(box: np.ndarray | None) -> np.ndarray:
     return np.where(np.isfinite(b) & (b > 0), b, 0.0)
 
 
+@njit(cache=True)
+def _bounds(pos):
+    """Smallest and largest coordinate per axis of the positions ``(N, 3)``, in one pass."""
+    low = np.full(3, np.inf)
+    high = np.full(3, -np.inf)
+    for i in range(pos.shape[0]):
+        for ax in range(3):
+            low[ax] = min(low[ax], pos[i, ax])
+            high[ax] = max(high[ax], pos[i, ax])
+    return low, high
+
+
 def _cell_layout(
-    pos: np.ndarray, period: np.ndarray, h: float
+    low: np.ndarray, span: np.ndarray, n: int, period: np.ndarray, h: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Lower corner, cell count and cell width per axis of a cell list of side >= ``h``."""
-    lo = np.where(period > 0, 0.0, pos.min(axis=0))
-    extent = np.where(period > 0, period, np.ptp(pos, axis=0))
+    """Lower corner, cell count and cell width per axis of a cell list of side >= ``h`` over
+    ``n`` particles whose positions start at ``low`` and extend over ``span``."""
+    lo = np.where(period > 0, 0.0, low)
+    extent = np.where(period > 0, period, span)
     ncell = np.maximum(1, np.floor(extent / h)).astype(np.int64)
-    while np.prod(ncell.astype(float)) > 8.0 * len(pos) + 27:  # sparse or far-flung particles
+    while np.prod(ncell.astype(float)) > 8.0 * n + 27:  # sparse or far-flung particles
         ncell = np.maximum(1, ncell // 2)
     ncell = np.where(period > 0, np.maximum(ncell, 3), ncell)
     width = np.where(period > 0, extent / ncell, np.maximum(extent / ncell, h))
@@ -214,9 +228,10 @@ def _block_reach(frac, s, ncell, width, period):
 @njit(cache=True)
 def _gather_block(ps, rs, start, c0, c1, c2, ncell, period, buf_p, buf_r, buf_b):
     """Copy the particles of the 27 cells around cell ``(c0, c1, c2)`` into contiguous buffers
-    (positions shifted by a period where a cell lies across a periodic boundary; each cell
-    once). Returns how many."""
+    (``buf_p`` one row per coordinate; positions shifted by a period where a cell lies across a periodic boundary; each cell
+    once). Returns how many, and where the cell's own particles start in the buffers."""
     m = 0
+    own = 0
     for o0 in range(-1, 2):
         n0, sh0 = _neighbour_cell(c0, o0, ncell[0], period[0])
         if n0 < 0:
@@ -230,14 +245,51 @@ def _gather_block(ps, rs, start, c0, c1, c2, ncell, period, buf_p, buf_r, buf_b)
                 if n2 < 0:
                     continue
                 c = (n0 * ncell[1] + n1) * ncell[2] + n2
+                if o0 == 0 and o1 == 0 and o2 == 0:
+                    own = m
                 for b in range(start[c], start[c + 1]):
-                    buf_p[m, 0] = ps[b, 0] + sh0
-                    buf_p[m, 1] = ps[b, 1] + sh1
-                    buf_p[m, 2] = ps[b, 2] + sh2
+                    buf_p[0, m] = ps[b, 0] + sh0
+                    buf_p[1, m] = ps[b, 1] + sh1
+                    buf_p[2, m] = ps[b, 2] + sh2
                     buf_r[m] = rs[b]
                     buf_b[m] = b
                     m += 1
-    return m
+    return m, own
+
+
+@njit(cache=True, inline="always")
+def _block_distances(buf_p, m_buf, xa, ya, za, im0, im1, im2, dist):
+    """Squared distances from ``(xa, ya, za)`` to the ``m_buf`` gathered particles into ``dist``
+    (nearest periodic image along the axes whose ``im`` is > 0; a plain loop, which the
+    compiler vectorises, when there is none)."""
+    if im0 > 0.0 or im1 > 0.0 or im2 > 0.0:
+        for q in range(m_buf):
+            dist[q] = _image_d2(buf_p[0, q] - xa, buf_p[1, q] - ya, buf_p[2, q] - za, im0, im1, im2)
+    else:
+        for q in range(m_buf):
+            dx = buf_p[0, q] - xa
+            dy = buf_p[1, q] - ya
+            dz = buf_p[2, q] - za
+            dist[q] = dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True, inline="always")
+def _block_contacts(dist, buf_r, buf_b, m_buf, a, ra, cutoff_factor, order, pairs, n_pairs):
+    """Append the contacts of particle ``a`` (cell order) with the gathered particles after it
+    in cell order (each pair once) to ``pairs``, counting beyond its length; returns the count."""
+    max_pairs = pairs.shape[0]
+    i = order[a]
+    for q in range(m_buf):
+        b = buf_b[q]
+        if b > a:
+            rc = (ra + buf_r[q]) * cutoff_factor
+            if dist[q] < rc * rc:
+                if n_pairs < max_pairs:
+                    j = order[b]
+                    pairs[n_pairs, 0] = min(i, j)
+                    pairs[n_pairs, 1] = max(i, j)
+                n_pairs += 1
+    return n_pairs
 
 
 @njit(cache=True)
@@ -246,11 +298,13 @@ def _search(pos, radii, period, lo, width, ncell, cutoff_factor, k, max_pairs):
     is 0) and the ``k`` nearest neighbours of every particle (none if ``k`` is 0).
 
     Cell by cell (positions, wrapped on periodic axes, copied in cell order), the particles of
-    the 27 cells around a cell are gathered once into contiguous buffers and every particle of
-    the cell is compared with them: they hold every contact partner (cells are at least the
-    cut-off wide). For the neighbours, only candidates closer than a running estimate of the
-    ``k``-th distance (the previous particle's plus 10 %) are ranked; when fewer than ``k`` are
-    that close, all are ranked, and when the ``k``-th candidate lies beyond the reach of the 27
+    the 27 cells around a cell are gathered once into contiguous buffers (one array per
+    coordinate) and the squared distances of every particle of the cell to them are computed
+    in one loop; the contacts and the neighbour candidates are read from these distances. The
+    buffers hold every contact partner (cells are at least the cut-off wide). For the
+    neighbours, only candidates closer than a running estimate of the ``k``-th distance (the
+    previous particle's plus 10 %) are ranked; when fewer than ``k`` are that close, all are
+    ranked, and when the ``k``-th candidate lies beyond the reach of the 27
     cells (a free-surface or flying particle), growing blocks of cells are ranked until it is
     within reach. Periodic axes need at least three cells; with four or fewer, distances take
     the nearest periodic image."""
@@ -277,55 +331,52 @@ def _search(pos, radii, period, lo, width, ncell, cutoff_factor, k, max_pairs):
     best_j = np.empty(k, np.int64)
     cand_d = np.empty(n)
     cand_j = np.empty(n, np.int64)
-    buf_p = np.empty((n, 3))
+    buf_p = np.empty((3, n))
     buf_r = np.empty(n)
+    dist = np.empty(n)
     buf_b = np.empty(n, np.int64)
     frac = np.empty(3)
+    min_reach2 = min(width[0], min(width[1], width[2])) ** 2  # the 27 cells hold this ball
     estimate = 0.0 if k == 0 else np.inf
     n_cells = ncell[0] * ncell[1] * ncell[2]
     for c in range(n_cells):
         if start[c + 1] == start[c]:
             continue
         i0 = order[start[c]]
-        m_buf = _gather_block(ps, rs, start, cell[i0, 0], cell[i0, 1], cell[i0, 2], ncell,
+        m_buf, own = _gather_block(ps, rs, start, cell[i0, 0], cell[i0, 1], cell[i0, 2], ncell,
                               period, buf_p, buf_r, buf_b)  # fmt: skip
         for a in range(start[c], start[c + 1]):
             i = order[a]
-            xa, ya, za, ra = ps[a, 0], ps[a, 1], ps[a, 2], rs[a]
-            m = 0
-            for q in range(m_buf):
-                b = buf_b[q]
-                if b == a:
-                    continue
-                d2 = _image_d2(buf_p[q, 0] - xa, buf_p[q, 1] - ya, buf_p[q, 2] - za, im0, im1, im2)
-                if b > a and cutoff_factor > 0.0:
-                    rc = (ra + buf_r[q]) * cutoff_factor
-                    if d2 < rc * rc:
-                        if n_pairs < max_pairs:
-                            j = order[b]
-                            pairs[n_pairs, 0] = min(i, j)
-                            pairs[n_pairs, 1] = max(i, j)
-                        n_pairs += 1
-                if d2 < estimate:
-                    cand_d[m] = d2
-                    cand_j[m] = order[b]
-                    m += 1
+            _block_distances(buf_p, m_buf, ps[a, 0], ps[a, 1], ps[a, 2], im0, im1, im2, dist)
+            if cutoff_factor > 0.0:
+                n_pairs = _block_contacts(dist, buf_r, buf_b, m_buf, a, rs[a], cutoff_factor,
+                                          order, pairs, n_pairs)  # fmt: skip
             if k == 0:
                 continue
+            dist[own + a - start[c]] = np.inf  # the particle itself
+            m = 0
+            for q in range(m_buf):  # branch-free compaction of those within the estimate
+                cand_d[m] = dist[q]
+                cand_j[m] = q
+                m += dist[q] < estimate
             if m < k:  # fewer than k within the estimate: rank the whole block
-                m = 0
                 for q in range(m_buf):
-                    if buf_b[q] != a:
-                        cand_d[m] = _image_d2(
-                            buf_p[q, 0] - xa, buf_p[q, 1] - ya, buf_p[q, 2] - za, im0, im1, im2
-                        )
-                        cand_j[m] = order[buf_b[q]]
-                        m += 1
+                    cand_d[q] = dist[q]
+                    cand_j[q] = q
+                m = m_buf
             _select(cand_d, cand_j, m, best_d, best_j)
-            for ax in range(3):
-                frac[ax] = min(max((ps[a, ax] - lo[ax]) / width[ax] - cell[i, ax], 0.0), 1.0)
+            for q in range(k):  # buffer slots -> particle indices (inf: no candidate)
+                if best_d[q] < np.inf:
+                    best_j[q] = order[buf_b[best_j[q]]]
+            if best_d[k - 1] > min_reach2:  # the k-th may lie beyond the 27 cells
+                for ax in range(3):
+                    frac[ax] = min(max((ps[a, ax] - lo[ax]) / width[ax] - cell[i, ax], 0.0), 1.0)
             s = 1
-            while best_d[k - 1] > _block_reach(frac, s, ncell, width, period) ** 2 and s <= s_max:
+            while (
+                best_d[k - 1] > min_reach2
+                and best_d[k - 1] > _block_reach(frac, s, ncell, width, period) ** 2
+                and s <= s_max
+            ):
                 s += 1  # a wider block; only cells nearer than the k-th candidate so far
                 m = _scan_block(ps, order, start, cell[i], frac, ncell, width, period, a, s,
                                 best_d[k - 1] * (1 + 1e-9), cand_d, cand_j)  # fmt: skip
@@ -336,11 +387,11 @@ def _search(pos, radii, period, lo, width, ncell, cutoff_factor, k, max_pairs):
     return pairs, n_pairs, nb
 
 
-def _typical_spacing(pos: np.ndarray) -> float:
-    """Cell side for a search without contacts: about two particles per cell on average."""
-    extent = np.ptp(pos, axis=0)
-    volume = float(np.prod(np.maximum(extent, extent.max() * 1e-3 + 1e-300)))
-    return (2.0 * volume / max(len(pos), 1)) ** (1.0 / 3.0)
+def _typical_spacing(span: np.ndarray, n: int) -> float:
+    """Cell side for a search without contacts: about two of ``n`` particles per cell on
+    average over the extent ``span``."""
+    volume = float(np.prod(np.maximum(span, span.max() * 1e-3 + 1e-300)))
+    return (2.0 * volume / max(n, 1)) ** (1.0 / 3.0)
 
 
 def neighbour_search(
@@ -368,8 +419,10 @@ def neighbour_search(
         raise ValueError(f"k must be in [1, N-1], got {k} for N={n}")
     period = _periods(box)
     factor = 0.0 if tolerance is None else 1.0 + float(tolerance)
-    h = max(2.0 * float(rad.max(initial=0.0)) * factor, _typical_spacing(pos))
-    lo, ncell, width = _cell_layout(pos, period, h)
+    low, high = _bounds(pos) if n else (np.zeros(3), np.zeros(3))
+    span = high - low
+    h = max(2.0 * float(rad.max(initial=0.0)) * factor, _typical_spacing(span, n))
+    lo, ncell, width = _cell_layout(low, span, n, period, h)
     max_pairs = _PAIRS_PER_PARTICLE * max(n, 1)
     while True:
         pairs, n_pairs, nb = _search(pos, rad, period, lo, width, ncell, factor, k, max_pairs)
@@ -410,4 +463,4 @@ def minimum_image_distance(p: np.ndarray, q: np.ndarray, box: np.ndarray | None)
         if per.any():
             L = np.where(per, box, 1.0)
             d = np.where(per, d - L * np.round(d / L), d)
-    return np.sqrt(np.sum(d * d, axis=-1))
+    return np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2])

@@ -102,7 +102,14 @@ def parse_indices(indices: str | Sequence[str]) -> list[str]:
 
 
 def _aligned(frame: Frame, order_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Types, radii and positions of the frame in the order of ``order_ids`` (sorted ids)."""
     ids = np.asarray(frame.ids)
+    if np.array_equal(ids, order_ids):  # already in id order (the usual case): no copies
+        return (
+            np.asarray(frame.types),
+            np.asarray(frame.radii, float),
+            np.asarray(frame.positions, float),
+        )
     sort = np.argsort(ids, kind="stable")
     if len(ids) != len(order_ids) or not np.array_equal(ids[sort], order_ids):
         raise ValueError(
@@ -172,7 +179,8 @@ def compute_indices(
     order_ids = np.sort(np.asarray(first.ids))
     if len(np.unique(order_ids)) != len(order_ids):
         raise ValueError("particle ids of the first frame are not unique")
-    types0, radii0, pos0 = _aligned(first, order_ids)
+    # the reference frame is kept: copies, which frames reusing their arrays cannot overwrite
+    types0, radii0, pos0 = (np.array(x) for x in _aligned(first, order_ids))
     state = _Reference(pos0, types0, radii0, config, names)
     rows = [state.row(first.t, types0, radii0, pos0)]
     for frame in frames:
@@ -325,15 +333,16 @@ class _Reference:
         need_contacts = bool({"PS", "CN", "SI"} & set(names))
         k = cfg.n_neighbours if "NNM" in names else 0
         tol = cfg.contact_tolerance if need_contacts else None
-        pairs, nb = neighbour_search(pos, radii, self.box, tol, k)
+        pairs, nb = neighbour_search(pos, radii, self.box, tol, k)  # one pass for all four
         if "NNM" in names:
             out["NNM"] = ci.nearest_neighbour_index(nb, types)
         if "PS" in names:
             out["PS"] = ci.particle_scale_index(pairs, types, self.tracer)
+        counts = ci.contact_type_counts(pairs, types, self.tracer) if need_contacts else None
         if "CN" in names:
-            out["CN"] = ci.coordination_number_index(pairs, types, self.tracer)
+            out["CN"] = ci.coordination_number_index(pairs, types, self.tracer, counts)
         if "SI" in names:
-            out["SI"] = ci.segregation_index(pairs, types, self.tracer)
+            out["SI"] = ci.segregation_index(pairs, types, self.tracer, counts)
         return out
 
 

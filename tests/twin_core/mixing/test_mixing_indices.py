@@ -210,3 +210,32 @@ def test_cell_list_search_equals_kd_tree(periodic):
     ref = np.sort(cand[near], axis=1)
     ref = ref[np.lexsort((ref[:, 1], ref[:, 0]))]
     assert np.array_equal(pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))], ref)
+
+
+@pytest.mark.parametrize("periodic", [False, True], ids=["closed", "periodic-xy"])
+def test_neighbour_search_equals_brute_force_on_a_sparse_layer(periodic):
+    """A thin, sparse layer (cells holding fewer than k + 1 particles around many particles,
+    so the k nearest lie beyond the first shell of cells): contacts and the 12 nearest
+    neighbours, nearest first, equal a brute-force all-pairs reference with the minimum image
+    on periodic axes."""
+    from twin_core.mixing.neighbours import neighbour_search
+
+    rng = np.random.default_rng(7)
+    n, k = 120, 12
+    size = np.array([0.03, 0.03, 0.002])
+    pos = rng.random((n, 3)) * size
+    radii = rng.uniform(0.3e-3, 0.9e-3, n)
+    box = np.array([size[0], size[1], np.inf]) if periodic else None
+    pairs, nb = neighbour_search(pos, radii, box, 0.02, k)
+    d = pos[None, :, :] - pos[:, None, :]
+    if periodic:
+        d[..., :2] -= size[:2] * np.round(d[..., :2] / size[:2])
+    dist = np.sqrt((d**2).sum(axis=-1))
+    np.fill_diagonal(dist, np.inf)
+    ref_nb = np.argsort(dist, axis=1, kind="stable")[:, :k]
+    assert np.array_equal(np.sort(nb, axis=1), np.sort(ref_nb, axis=1))
+    assert np.all(np.diff(np.take_along_axis(dist, nb, axis=1), axis=1) >= 0)  # nearest first
+    i, j = np.nonzero(np.triu(dist < (radii[:, None] + radii[None, :]) * 1.02, 1))
+    ref = np.stack([i, j], axis=1)
+    got = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    assert np.array_equal(got, ref[np.lexsort((ref[:, 1], ref[:, 0]))])
