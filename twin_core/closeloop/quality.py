@@ -2,7 +2,7 @@
 
 A stuck probe read as a dead zone, a clipped peak read as a gain, a burst of spikes read as a
 disturbance: a process effect fitted to a data fault is a confident wrong answer. Every series
-the close-loop uses (the NIR reading and every feeder's reported flow, and the raw time stamps
+the close-loop uses (the NIR reading, every feeder's reported flow and screw speed, and the raw time stamps
 of their messages when the record has them) is checked here first; the flagged samples are
 reported (kind, series, interval, count) and left out of the identification
 (:attr:`DataQuality.exclude`). For an input (a feeder flow) the outlet samples it reaches are
@@ -64,7 +64,7 @@ NIR = "nir"
 
 @dataclass(frozen=True)
 class DataFlag:
-    """A data fault: kind, series (``nir``, ``<feeder>:flow``), interval and sample count."""
+    """A data fault: kind, series (``nir``, ``<feeder>:flow``, ``<feeder>:screw_speed``), interval and sample count."""
 
     kind: str
     series: str
@@ -366,12 +366,13 @@ class _Checker:
             g0 - self.dt <= ta and tb <= g1 + self.dt for g0, g1 in self.gaps.get(series, [])
         )
 
-    def flag(self, kind: str, series: str, a: int, b: int, n: int, reach: float) -> None:
+    def flag(self, kind: str, series: str, a: int, b: int, n: int, reach: float | None) -> None:
         """Flag samples [a, b) of a series on the record's grid; leave out the outlet samples
-        from a to b + ``reach`` s."""
+        from a to b + ``reach`` s (None: none)."""
         t = self.t
         self.flags.append(DataFlag(kind, series, float(t[a]), float(t[b - 1]), int(n)))
-        self.exclude |= (t >= t[a]) & (t <= t[b - 1] + reach)
+        if reach is not None:
+            self.exclude |= (t >= t[a]) & (t <= t[b - 1] + reach)
 
     def nir(self) -> None:
         """The NIR reading: gaps, stuck runs, clipping, spike bursts."""
@@ -418,28 +419,48 @@ class _Checker:
             self.flag("spike_burst", NIR, idx[a], idx[b - 1] + 1, b - a, 0.0)
 
     def flows(self) -> None:
-        """Every feeder's reported flow: stuck runs (not while refilling), clipping, spike
-        bursts; the outlet samples each fault reaches are left out."""
+        """Every feeder's reported flow and screw speed: stuck runs (not while refilling),
+        clipping, spike bursts; the outlet samples a flow fault reaches are left out (the
+        screw speed does not enter the prediction: flagged, nothing left out)."""
         inp = self.data.inputs
         for feeder, q in inp.flows_kg_h.items():
-            name = f"{feeder}:flow"
-            refill = inp.refilling.get(feeder)
-            runs = stuck_runs(q, self.opt, exempt_zero=True)
-            for a, b in runs:
-                if refill is not None and refill.size and refill[a:b].all():
+            self.series_faults(f"{feeder}:flow", q, inp.refilling.get(feeder), self.span)
+        for feeder, rpm in inp.screw_speed_rpm.items():
+            rpm = np.asarray(rpm, dtype=float)
+            if rpm.size == self.t.size and np.all(np.isfinite(rpm)):
+                refill = inp.refilling.get(feeder)
+                self.series_faults(f"{feeder}:screw_speed", rpm, refill, None, held=True)
+
+    def series_faults(
+        self,
+        name: str,
+        q: np.ndarray,
+        refill: np.ndarray | None,
+        reach: float | None,
+        held: bool = False,
+    ) -> None:
+        """Stuck runs (not while refilling, not a stamp gap's held value), clipping and spike
+        bursts of one input series; ``reach`` (s) of outlet samples left out after each
+        (None: flagged only). ``held``: the series is held constant from a refill until the
+        feeder is back in gravimetric mode (a screw speed in volumetric mode), so a run that
+        starts in a refill is not stuck."""
+        runs = stuck_runs(q, self.opt, exempt_zero=True)
+        for a, b in runs:
+            if refill is not None and refill.size:
+                if refill[a:b].all() or (held and refill[a:b].any()):
                     continue
-                if self.in_gap(name, a, b):
+            if self.in_gap(name, a, b):
+                continue
+            self.flag("stuck", name, a, b, b - a, reach)
+        if np.ptp(q) > 0:
+            for a, b in clipped_runs(q, self.opt, None):
+                if q[a] == 0.0 or any(a >= s and b <= e for s, e in runs):
                     continue
-                self.flag("stuck", name, a, b, b - a, self.span)
-            if np.ptp(q) > 0:
-                for a, b in clipped_runs(q, self.opt, None):
-                    if q[a] == 0.0 or any(a >= s and b <= e for s, e in runs):
-                        continue
-                    self.flag("clipping", name, a, b, b - a, self.span)
-            res = hampel(q, variant="seed")
-            rate = max(res.count / q.size, 1e-4)
-            for a, b, n_out in burst_runs(res.mask, rate, self.opt):
-                self.flag("spike_burst", name, a, b, n_out, self.span)
+                self.flag("clipping", name, a, b, b - a, reach)
+        res = hampel(q, variant="seed")
+        rate = max(res.count / q.size, 1e-4)
+        for a, b, n_out in burst_runs(res.mask, rate, self.opt):
+            self.flag("spike_burst", name, a, b, n_out, reach)
 
     def stamps(self) -> None:
         """Duplicates, time jumps and gaps of the raw message stamps (when the record has
