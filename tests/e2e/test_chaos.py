@@ -34,10 +34,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from twin_view import Seen, running, wait_until
 
 from schemas import keys
 from schemas.line import LineSpec
-from schemas.messages import DivertCommand, OosAlert, ServiceHealth
+from schemas.messages import DivertCommand, OosAlert
 from services.bus import free_port, open_session
 from services.recording import BusReplay, read_recording, write_messages
 from services.supervisor import Supervisor
@@ -54,56 +55,6 @@ DISTURBANCES = [
 ]
 SPEED = 60.0  # plant seconds per wall second: 30 s of replay
 HOG = "import time\nend = time.monotonic() + 300\nwhile time.monotonic() < end: pass\n"
-
-
-def running(pid: int) -> bool:
-    """Whether process ``pid`` exists and is not a zombie."""
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        return False
-    return state not in ("Z", "X")
-
-
-class Seen:
-    """Alerts, divert commands and the latest health of each service, as the operator sees."""
-
-    def __init__(self, sup: Supervisor) -> None:
-        self.got: dict[type, list] = {OosAlert: [], DivertCommand: []}
-        self.health: dict[str, ServiceHealth] = {}
-        self.session = open_session(sup.client_config("operator"))
-        line = sup.spec.name
-        self.subs = [
-            self.session.declare_subscriber(keys.oos_alert(line), self._on(OosAlert)),
-            self.session.declare_subscriber(keys.divert_command(line), self._on(DivertCommand)),
-            self.session.declare_subscriber(keys.services_health(line), self._on(ServiceHealth)),
-        ]
-
-    def _on(self, model):
-        def cb(sample: zenoh.Sample) -> None:
-            msg = model.model_validate_json(sample.payload.to_bytes())
-            if model is ServiceHealth:
-                self.health[msg.service] = msg
-            else:
-                self.got[model].append(msg)
-
-        return zenoh.handlers.Callback(cb, lambda: None)
-
-    def plant_time(self, service: str) -> float:
-        h = self.health.get(service)
-        return h.t if h is not None else -1.0
-
-    def close(self) -> None:
-        for s in self.subs:
-            s.undeclare()
-        self.session.close()
-
-
-def wait_until(pred, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end and not pred():
-        time.sleep(0.05)
-    return pred()
 
 
 def forge(sup: Supervisor) -> dict[str, str]:
