@@ -240,6 +240,8 @@ class OosService(Service):
             pub.publish(to_message(o, pub.seq))
             self.log_ids.add(o.id)
             self.counters.inc("alerts" if o.kind == "alert" else "divert_commands")
+        if self.core.finished and not self.counters.get("stream_ended"):
+            self.counters.inc("stream_ended")  # the replay's end: every decision is out
 
     def idle(self) -> None:
         # a stream that went quiet (e.g. no blender) must not hold decisions back forever
