@@ -35,13 +35,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from twin_view import Seen, running, wait_until
+from twin_view import Seen, plant_replay, running, wait_until
 
 from schemas import keys
 from schemas.line import LineSpec
 from schemas.messages import DivertCommand, OosAlert
 from services.bus import free_port, open_session
-from services.recording import BusReplay, read_recording, write_messages
+from services.recording import read_recording, write_messages
 from services.supervisor import Supervisor
 from twin_core.online.blender import declared_kernel
 from twin_core.plant.messages import simulate_messages
@@ -157,14 +157,7 @@ def chaos(tmp_path_factory):
                     subprocess.run(["kill", "-KILL", str(pid)], check=False)
                     out["killed"][name] = pid
 
-        with BusReplay(
-            rec,
-            sup.client_config("plant"),
-            spec=spec,
-            settle_s=0.5,
-            service_name="plant",
-            install_signal_handlers=False,
-        ) as rp:
+        with plant_replay(rec, sup) as rp:
             th = threading.Thread(target=killer, daemon=True)
             th.start()
             out["injected"] = inject_junk(rp.svc.session, spec.name)
@@ -177,14 +170,7 @@ def chaos(tmp_path_factory):
             assert wait_until(lambda: len(seen.got[OosAlert]) >= 2, 120), seen.got
             time.sleep(2.0)  # anything duplicated would arrive now
         with pytest.raises(RuntimeError, match="already seen plant time") as second:
-            with BusReplay(
-                rec,
-                sup.client_config("plant"),
-                spec=spec,
-                settle_s=0.5,
-                service_name="plant",
-                install_signal_handlers=False,
-            ):
+            with plant_replay(rec, sup):
                 pass
         out["second_session"] = str(second.value)
         out["health"] = dict(seen.health)

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 import pytest
-from twin_view import Seen, wait_until
+from twin_view import Seen, plant_replay, wait_until
 
 from schemas import keys
 from schemas.closeloop import ModelFinding
@@ -37,7 +37,7 @@ from schemas.messages import (
     RtdSkipped,
 )
 from services.bus import free_port
-from services.recording import BusReplay, read_recording, write_messages
+from services.recording import read_recording, write_messages
 from services.supervisor import Supervisor
 from services.twin_demo import expected_findings
 from twin_core.plant.messages import simulate_messages
@@ -116,14 +116,7 @@ def run_twin(
             )
 
         th = threading.Thread(target=killer, daemon=True)
-        with BusReplay(
-            rec,
-            sup.client_config("plant"),
-            spec=spec,
-            settle_s=0.5,
-            service_name="plant",
-            install_signal_handlers=False,
-        ) as rp:
+        with plant_replay(rec, sup) as rp:
             th.start()
             rp.replay(speed=speed)
             th.join(60)

@@ -11,6 +11,7 @@ import zenoh
 from schemas import keys
 from schemas.messages import DivertCommand, OosAlert, ServiceHealth
 from services.bus import open_session
+from services.recording import BusReplay, Recording
 from services.supervisor import Supervisor
 
 
@@ -62,3 +63,16 @@ def wait_until(pred, timeout: float) -> bool:
     while time.monotonic() < end and not pred():
         time.sleep(0.05)
     return pred()
+
+
+def plant_replay(rec: Recording, sup: Supervisor) -> BusReplay:
+    """The virtual plant replaying ``rec`` into the supervised twin, as the ``plant`` identity
+    (a context manager: ``with plant_replay(rec, sup) as rp: rp.replay(speed=...)``)."""
+    return BusReplay(
+        rec,
+        sup.client_config("plant"),
+        spec=sup.spec,
+        settle_s=0.5,
+        service_name="plant",
+        install_signal_handlers=False,
+    )
