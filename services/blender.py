@@ -98,7 +98,7 @@ class BlenderService(Service):
 
     def idle(self) -> None:
         # a producer down for long must not stop the predictions (module docstring)
-        if len(self.gate) and self.gate.silent_for(self.spec.blender.adoption_wait_s):
+        if self.gate.stalled(self.spec.blender.adoption_wait_s):
             self.counters.inc("adoption_bypassed")
             log.warning(
                 "blender: no progress of %s for %.0f s; predicting without waiting for them",

@@ -129,10 +129,12 @@ class ProducerProgress:
             return True
         return False
 
-    def silent_for(self, wait_s: float) -> bool:
-        """Whether some producer is behind and none has moved for ``wait_s`` wall seconds (down
-        or stuck: the outputs may go on without it)."""
-        return bool(self.sources) and time.monotonic() - self.moved_at > wait_s
+    def silent_for(self, wait_s: float, waiting_since: float = -math.inf) -> bool:
+        """Whether there are producers and their progress has not moved for ``wait_s`` wall
+        seconds while something waited for it (since ``waiting_since``, monotonic): down or
+        stuck, the outputs may go on without them."""
+        quiet_since = max(self.moved_at, waiting_since)
+        return bool(self.sources) and time.monotonic() - quiet_since > wait_s
 
 
 class AdoptionGate(ProducerProgress):
@@ -143,6 +145,8 @@ class AdoptionGate(ProducerProgress):
     def __init__(self, sources: list[str]) -> None:
         super().__init__(sources)
         self._held: list[tuple[str, Any]] = []
+        #: wall time (monotonic) the oldest held flow was held
+        self.held_since = -math.inf
         #: go on without the producers (they were silent too long) until they move again
         self.bypass = False
 
@@ -164,9 +168,16 @@ class AdoptionGate(ProducerProgress):
         if self.bypass and not self._held:
             return False
         if self._held or msg.t > self.complete_to_s:
+            if not self._held:
+                self.held_since = time.monotonic()
             self._held.append((key, msg))
             return True
         return False
+
+    def stalled(self, wait_s: float) -> bool:
+        """Whether flows have waited ``wait_s`` wall seconds without the producers' progress
+        moving (:meth:`ProducerProgress.silent_for`)."""
+        return bool(self._held) and self.silent_for(wait_s, self.held_since)
 
     def free(self) -> list[tuple[str, Any]]:
         """The held flows now free, in arrival order (each key's flows stay in order: a flow

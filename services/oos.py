@@ -180,7 +180,10 @@ class OosService(Service):
         are known complete, or anywhere once the producers have been silent for
         ``blender.adoption_wait_s`` (counted in ``adoption_bypassed``)."""
         p = self.producers
-        if p.complete_to_s == math.inf or not p.silent_for(self.spec.blender.adoption_wait_s):
+        waiting_since = self.core.last_release or -math.inf  # decisions pending since
+        if p.complete_to_s == math.inf or not p.silent_for(
+            self.spec.blender.adoption_wait_s, waiting_since
+        ):
             return p.complete_to_s
         self.counters.inc("adoption_bypassed")
         return math.inf

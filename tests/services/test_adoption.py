@@ -10,6 +10,7 @@ between the tick it is applied from and its ``applies_from_s``.
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import pytest
@@ -146,7 +147,8 @@ def test_gate_keeps_each_keys_order_and_a_silent_producer_is_bypassed():
     assert gate.report("closeloop", 5.0, None) and gate.complete_to_s == 1.5
     assert [(k, f.t) for k, f in gate.free()] == [("a", 1.0), ("b", 1.0)]
     assert len(gate) == 1
-    assert not gate.silent_for(60.0) and gate.silent_for(-1.0)
+    assert not gate.stalled(60.0) and gate.stalled(-1.0)
+    assert not gate.silent_for(-1.0, waiting_since=time.monotonic() + 10.0)
     assert [(k, f.t) for k, f in gate.release_all()] == [("a", 2.0)]
     assert gate.bypass and not gate.hold("a", F(9.0))
     assert gate.report("rtd", 20.0, None) and not gate.bypass
