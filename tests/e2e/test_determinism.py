@@ -4,12 +4,12 @@ One recording (15 min of line 1: a 10 g API tracer pulse, a feeder disturbance, 
 feed bias of the API feeder the close-loop can find) is replayed three times into a supervised
 twin (feeder, blender, rtd, oos, closeloop, recorder; the blender adopts the RTD estimates and
 the findings): (a) idle, (b) under two busy processes with the replay four times faster,
-(c) with the blender and the closeloop service SIGKILLed mid-run and restarted. The estimates
-and findings apply from their ``applies_from_s`` (end of their data plus
-``blender.adoption_delay_s``), and the blender and the diverter wait for the producers'
-``AdoptionProgress``, so the three runs give identical alerts, divert windows, RTD estimates,
-findings and predictions (compared exactly: the same float operations in the same order, so
-equal to the last bit), and no update is applied late.
+(c) with the blender and the closeloop service SIGKILLed mid-run and restarted (at the same time
+as (b), so loaded too). The estimates and findings apply from their ``applies_from_s`` (end of
+their data plus ``blender.adoption_delay_s``), and the blender and the diverter wait for the
+producers' ``AdoptionProgress``, so the three runs give identical alerts, divert windows, RTD
+estimates, findings and predictions (compared exactly: the same float operations in the same
+order, so equal to the last bit), and no update is applied late.
 
 Reference: the run itself (a) is the reference; the comparison is exact, so any dependence on
 machine load, replay speed or restarts shows.
@@ -21,6 +21,7 @@ import subprocess
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -172,11 +173,12 @@ def outputs(run: dict) -> dict:
 def runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("determinism")
     rec = recording(tmp / "plant.mcap")
-    return {
-        "idle": run_twin(rec, tmp / "idle", speed=200.0),
-        "hog": run_twin(rec, tmp / "hog", speed=800.0, hogs=2),
-        "restart": run_twin(rec, tmp / "restart", speed=200.0, kill=KILL_AT),
-    }
+    idle = run_twin(rec, tmp / "idle", speed=200.0)
+    # the hog run and the restart run side by side: the restart run is loaded too
+    with ThreadPoolExecutor(2) as pool:
+        hog = pool.submit(run_twin, rec, tmp / "hog", speed=800.0, hogs=2)
+        restart = pool.submit(run_twin, rec, tmp / "restart", speed=200.0, kill=KILL_AT)
+        return {"idle": idle, "hog": hog.result(), "restart": restart.result()}
 
 
 def test_same_outputs_idle_under_load_and_after_restarts(runs):
@@ -191,12 +193,25 @@ def test_same_outputs_idle_under_load_and_after_restarts(runs):
     for name in ("hog", "restart"):
         got = outputs(runs[name])
         for key, want in ref.items():
-            assert got[key] == want, f"{name}: {key} differs"
+            assert got[key] == want, f"{name}: {key} differs; {wall_clock_escapes(runs[name])}"
 
 
-def test_no_update_applied_late_and_the_blender_waited_when_needed(runs):
+#: health counters of the wall-clock escapes, by which an output may depend on timing
+ESCAPES = ("adopted_late", "adoption_bypassed", "degraded_releases", "catchup_timeouts")
+
+
+def wall_clock_escapes(run: dict) -> dict[str, dict[str, int]]:
+    """Per service, the escape counters that are not zero (what to look at if a run differs)."""
+    out = {}
+    for svc, h in run["health"].items():
+        found = {k: h.counters[k] for k in ESCAPES if h.counters.get(k)}
+        if found:
+            out[svc] = found
+    return out
+
+
+def test_no_wall_clock_escape_and_the_blender_waited_for_the_producers(runs):
     for name, run in runs.items():
-        for svc in ("blender", "oos"):
-            c = run["health"][svc].counters
-            assert c.get("adopted_late", 0) == 0, (name, svc, c)
+        assert wall_clock_escapes(run) == {}, name
         assert run["health"]["blender"].counters.get("rtd_adopted", 0) >= 1, name
+        assert run["health"]["blender"].counters.get("held_for_adoption", 0) > 0, name

@@ -10,7 +10,7 @@ import zenoh
 
 from schemas import keys
 from schemas.messages import DivertCommand, OosAlert, ServiceHealth
-from services.bus import open_session
+from services.bus import HistoryFeed, open_session
 from services.recording import BusReplay, Recording
 from services.supervisor import Supervisor
 
@@ -32,28 +32,35 @@ class Seen:
         self.health: dict[str, ServiceHealth] = {}
         self.session = open_session(sup.client_config("operator"))
         line = sup.spec.name
+        # alerts and divert commands through advanced subscribers: one published while the
+        # router restarts is recovered from the diverter's cache, as a twin tool gets it
+        self.feeds = [
+            HistoryFeed(self.session, keys.oos_alert(line), self._feed(OosAlert)),
+            HistoryFeed(self.session, keys.divert_command(line), self._feed(DivertCommand)),
+        ]
         self.subs = [
-            self.session.declare_subscriber(keys.oos_alert(line), self._on(OosAlert)),
-            self.session.declare_subscriber(keys.divert_command(line), self._on(DivertCommand)),
-            self.session.declare_subscriber(keys.services_health(line), self._on(ServiceHealth)),
+            self.session.declare_subscriber(
+                keys.services_health(line),
+                zenoh.handlers.Callback(self._on_health, lambda: None),
+            ),
         ]
 
-    def _on(self, model):
-        def cb(sample: zenoh.Sample) -> None:
-            msg = model.model_validate_json(sample.payload.to_bytes())
-            if model is ServiceHealth:
-                self.health[msg.service] = msg
-            else:
-                self.got[model].append(msg)
+    def _feed(self, model):
+        def sink(key: str, payload: bytes) -> None:
+            self.got[model].append(model.model_validate_json(payload))
 
-        return zenoh.handlers.Callback(cb, lambda: None)
+        return sink
+
+    def _on_health(self, sample: zenoh.Sample) -> None:
+        msg = ServiceHealth.model_validate_json(sample.payload.to_bytes())
+        self.health[msg.service] = msg
 
     def plant_time(self, service: str) -> float:
         h = self.health.get(service)
         return h.t if h is not None else -1.0
 
     def close(self) -> None:
-        for s in self.subs:
+        for s in [*self.feeds, *self.subs]:
             s.undeclare()
         self.session.close()
 
