@@ -336,5 +336,5 @@ class ModelFinding(Message):
     applies_from_s: NonNegative | None = Field(
         default=None,
         description="plant time from which the twin adopts this finding's model: t_end_s plus "
-        "blender.adoption_delay_s (None, contract < 1.4: t + blender.adoption_delay_s)",
+        "blender.adoption_delay_s (None, contract < 1.5: t + blender.adoption_delay_s)",
     )

@@ -116,7 +116,7 @@ class RtdEstimate(Message):
         default=None,
         description="plant time from which the twin predicts with this estimate: the plant "
         "time of the NIR sample that completed it plus blender.adoption_delay_s (None, contract "
-        "< 1.4: t + blender.adoption_delay_s)",
+        "< 1.5: t + blender.adoption_delay_s)",
     )
 
     @model_validator(mode="after")

@@ -75,7 +75,7 @@ class TickMark:
 
 def applies_from(msg: Any, spec: LineSpec) -> float:
     """Plant time from which an ``RtdEstimate`` or a ``ModelFinding`` applies: its
-    ``applies_from_s``, or (a message of contract < 1.4) ``t + blender.adoption_delay_s``."""
+    ``applies_from_s``, or (a message of contract < 1.5) ``t + blender.adoption_delay_s``."""
     t_from = getattr(msg, "applies_from_s", None)
     return float(msg.t + spec.blender.adoption_delay_s if t_from is None else t_from)
 
