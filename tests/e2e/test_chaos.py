@@ -110,6 +110,15 @@ def inject_junk(plant: zenoh.Session, line: str) -> int:
     return len(payloads)
 
 
+def reconnected(seen: Seen, services: list[str], since: float | None) -> bool:
+    """Whether every service reported its health more than a second after ``since`` (wall
+    time of the router's restart; None: not restarted)."""
+    if since is None:
+        return True
+    h = seen.health
+    return all(s in h and h[s].wall_time_unix_s > since + 1.0 for s in services)
+
+
 def jump_clock(plant: zenoh.Session, line: str) -> None:
     """A valid flow on the api key at a plant time long past (a PLC clock reset)."""
     back = (
@@ -151,6 +160,7 @@ def chaos(tmp_path_factory):
                 if wait_until(lambda t=t: seen.plant_time("oos") >= t, 120):
                     if name == "router":
                         sup.restart_router(down_s=1.0)
+                        out["router_back"] = time.time()
                         out["killed"][name] = 0
                         continue
                     pid = sup.pids()[name]
@@ -163,9 +173,11 @@ def chaos(tmp_path_factory):
             out["injected"] = inject_junk(rp.svc.session, spec.name)
             rp.replay(speed=SPEED)
             th.join(120)
-            # a plain put is not cached: send the jump once the plant is connected again
-            # (the diverter has seen the end of the replay through the restarted router)
+            # a plain put is not cached: send the jump once the plant and every service are
+            # connected again (the diverter has seen the end of the replay, each service has
+            # reported its health through the restarted router)
             wait_until(lambda: seen.plant_time("oos") >= rec.messages[-1].t, 120)
+            wait_until(lambda: reconnected(seen, spec.services, out.get("router_back")), 120)
             jump_clock(rp.svc.session, spec.name)
             assert wait_until(lambda: len(seen.got[OosAlert]) >= 2, 120), seen.got
             time.sleep(2.0)  # anything duplicated would arrive now
