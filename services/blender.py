@@ -19,10 +19,11 @@ counted in ``adopted_late`` with the largest lateness in ``adopted_late_max_ms``
 and logged. A producer that reports nothing for ``blender.adoption_wait_s`` wall seconds (down)
 holds the predictions back no longer (``adoption_bypassed``) until it reports again.
 
-A restarted blender recomputes from the flow history and does not publish a tick again: the last
-published tick is written to the run's state directory after each tick (one ``pwrite`` of a
-fixed-width number: a crash between a publication and its mark repeats at most that tick, which
-the subscribers and the recorder drop as a duplicate).
+A restarted blender recomputes from the flow history and publishes again only the last
+``republish_ticks`` ticks before the last one it marked: the last published tick is written to
+the run's state directory after each tick (one ``pwrite`` of a fixed-width number), and a crash
+can come between a publication and its mark, or after the mark while the tick is still in the
+process's send queue; the subscribers and the recorder drop what they had as duplicates.
 """
 
 from __future__ import annotations
@@ -51,6 +52,11 @@ log = logging.getLogger(__name__)
 
 class BlenderService(Service):
     """See the module docstring."""
+
+    #: ticks before the last one marked that a restarted blender publishes again: a crash just
+    #: after the mark can lose what was still in the process's send queue (the subscribers and
+    #: the recorder drop the ones they had as duplicates)
+    republish_ticks = 20
 
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
         super().__init__("blender", spec=spec, **kwargs)
@@ -138,8 +144,8 @@ class BlenderService(Service):
             return
         n_comp = len(self.core.comp_names)
         for t, conc in self.core.push(feeder, msg.t, msg.mass_flow_kg_h, msg.refilling):
-            if t <= self.last_published_t:
-                continue  # already published before a restart
+            if t <= self.last_published_t - self.republish_ticks * self.spec.dt_s:
+                continue  # published before a restart (the last ticks are sent again)
             for i, c in enumerate(self.core.comp_names):
                 self.pub.publish(
                     PredictedConcentration(
