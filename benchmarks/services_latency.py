@@ -45,6 +45,7 @@ from schemas.messages import (  # noqa: E402
     FeederFlow,
     MeasuredConcentration,
     OosAlert,
+    PredictedConcentration,
     ServiceHealth,
 )
 from services.bus import free_port, open_session  # noqa: E402
@@ -75,11 +76,17 @@ class Decisions:
 
     def __init__(self, session: zenoh.Session, line: str) -> None:
         self.recv: dict[tuple[str, float], float] = {}
+        #: wall time the blender's prediction of each tick was first received
+        self.pred: dict[float, float] = {}
         self.running_since: dict[int, float] = {}
         self.lock = threading.Lock()
         self.subs = [
             session.declare_subscriber(keys.oos_alert(line), self._on(OosAlert)),
             session.declare_subscriber(keys.divert_command(line), self._on(DivertCommand)),
+            session.declare_subscriber(
+                keys.predicted_concentration(line, "outlet"),
+                zenoh.handlers.Callback(self._on_pred, lambda: None),
+            ),
             session.declare_subscriber(
                 keys.service_health(line, "oos"),
                 zenoh.handlers.Callback(self._on_health, lambda: None),
@@ -95,6 +102,12 @@ class Decisions:
                 self.recv.setdefault((kind, round(m.t, 6)), now)
 
         return zenoh.handlers.Callback(cb, lambda: None)
+
+    def _on_pred(self, sample: zenoh.Sample) -> None:
+        now = time.perf_counter()
+        p = PredictedConcentration.model_validate_json(sample.payload.to_bytes())
+        with self.lock:
+            self.pred.setdefault(round(p.t, 6), now)
 
     def _on_health(self, sample: zenoh.Sample) -> None:
         h = ServiceHealth.model_validate_json(sample.payload.to_bytes())
@@ -153,21 +166,39 @@ def phases(
     startup_s: float,
     kill_t: float | None,
     back_wall: float | None,
-) -> dict[str, list[float]]:
-    """Latencies (ms) by phase (module docstring)."""
-    out: dict[str, list[float]] = {}
+) -> dict[str, list[tuple[float, str, float]]]:
+    """Latencies (ms, decision kind, plant time) by phase (module docstring)."""
+    out: dict[str, list[tuple[float, str, float]]] = {}
     t_back = None
     if back_wall is not None:
         t_back = min((t for t, w in sent.items() if w >= back_wall), default=None)
-    for (_, t), v in lat.items():
+    for (kind, t), v in lat.items():
         if kill_t is None or t < kill_t:
             phase = "start-up" if t < startup_s else "steady"
         elif t_back is None or t < t_back:
             phase = "outage"
         else:
             phase = "restart" if t < t_back + startup_s else "after restart"
-        out.setdefault(phase, []).append(v * 1e3)
+        out.setdefault(phase, []).append((v * 1e3, kind, t))
     return out
+
+
+def stages(
+    lat: dict[tuple[str, float], float], pred: dict[float, float], sent: dict[float, float]
+) -> dict[str, list[float]]:
+    """Each decision's latency split at the arrival of the blender's prediction of its tick at
+    the benchmark (a peer of the diverter on the same router): NIR sample -> prediction seen
+    (the flows' hop to the blender, its computation, the hop out), and prediction seen ->
+    decision seen (the diverter's merge and decision, the hop back), ms."""
+    a, b = [], []
+    for (_, t), v in lat.items():
+        if t in pred and t in sent:
+            p = pred[t] - sent[t]
+            a.append(p * 1e3)
+            b.append((v - p) * 1e3)
+    if not a:
+        return {}
+    return {"NIR sample -> prediction seen": a, "prediction seen -> decision seen": b}
 
 
 def main() -> int:
@@ -225,15 +256,23 @@ def main() -> int:
         f"(real time); oos killed at {kill_t} s of plant time"
     )
     for phase in ("start-up", "steady", "outage", "restart", "after restart"):
-        v = np.array(by_phase.get(phase, []))
+        rows = sorted(by_phase.get(phase, []), reverse=True)
+        v = np.array([r[0] for r in rows])
         if v.size == 0:
             print(f"  {phase:<14} n=   0")
             continue
+        slow = ", ".join(f"{k} t={t:.1f} s {ms:.1f} ms" for ms, k, t in rows[:3])
         print(
             f"  {phase:<14} n={v.size:4d}  median {np.median(v):.2f} ms  p99 "
-            f"{np.percentile(v, 99):.2f} ms  max {v.max():.2f} ms"
+            f"{np.percentile(v, 99):.2f} ms  max {v.max():.2f} ms  (slowest: {slow})"
         )
     print("  target: p99 < 5 ms at start-up, steady, restart and after restart")
+    calm = {(k, t) for ph in ("steady", "after restart") for _, k, t in by_phase.get(ph, [])}
+    split = stages({k: v for k, v in lat.items() if k in calm}, dec.pred, sent)
+    if split:
+        print("  where the time goes (steady and after restart; decisions with a prediction):")
+        for name, v in split.items():
+            print(f"    {name:<34} median {np.median(v):.2f} ms  p99 {np.percentile(v, 99):.2f} ms")
     return 0
 
 

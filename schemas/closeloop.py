@@ -333,3 +333,8 @@ class ModelFinding(Message):
     structure: list[StructureEntry] = Field(default_factory=list)
     remaining: str = ""
     errors: Errors
+    applies_from_s: NonNegative | None = Field(
+        default=None,
+        description="plant time from which the twin adopts this finding's model: t_end_s plus "
+        "blender.adoption_delay_s (None, contract < 1.5: t + blender.adoption_delay_s)",
+    )

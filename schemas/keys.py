@@ -8,6 +8,7 @@ Examples::
     twin/line1/feeder/api/event           Event
     twin/line1/rtd/estimate               RtdEstimate        (no id)
     twin/line1/rtd/skipped                RtdSkipped         (no id)
+    twin/line1/rtd/progress               AdoptionProgress   (no id; also closeloop/progress)
     twin/line1/oos/alert                  OosAlert           (no id)
     twin/line1/divert/command             DivertCommand      (no id)
     twin/line1/dem/job7/request|progress|result
@@ -119,6 +120,18 @@ def rtd_skipped(line: str) -> str:
 
 def model_finding(line: str) -> str:
     return key(line, "closeloop", "finding")
+
+
+#: the producers of model updates the blender and the diverter adopt (``AdoptionProgress``)
+ADOPTION_SOURCES = ("rtd", "closeloop")
+
+
+def adoption_progress(line: str, unit: str) -> str:
+    """How far the model updates of ``unit`` (``rtd`` or ``closeloop``) are complete
+    (``AdoptionProgress``)."""
+    if unit not in ADOPTION_SOURCES:
+        raise ValueError(f"unit must be one of {list(ADOPTION_SOURCES)}, got {unit!r}")
+    return key(line, unit, "progress")
 
 
 def oos_alert(line: str) -> str:

@@ -104,7 +104,15 @@ class BlenderModelConfig(StrictModel):
     live blender service. ``kernel_s``: length of E(t) kept for the streaming convolution;
     ``adopt_rtd_estimates``: replace E(t) by the rtd service's fits; ``adopt_findings``: add the
     effects the closeloop service finds (``twin/<line>/closeloop/finding``) to the prediction
-    model (the time-invariant blender and feeder effects).
+    model (the time-invariant blender and feeder effects). ``adoption_delay_s``: plant seconds
+    after the end of its data from which an RTD estimate or a finding is applied (its
+    ``applies_from_s``): the blender and the diverter wait, if need be, until the rtd and closeloop
+    services have got that far (``AdoptionProgress``), so that the model at each plant time does
+    not depend on machine load or restarts; larger: less waiting, later adoption.
+    ``adoption_wait_s``: wall seconds a producer that reports no progress (down) may hold the
+    predictions and decisions back; then they go on without it (counted in
+    ``adoption_bypassed``; an update that comes after its plant time is counted in
+    ``adopted_late``).
     """
 
     kind: Literal["rtd", "compartment"] = "rtd"
@@ -116,6 +124,8 @@ class BlenderModelConfig(StrictModel):
     kernel_s: Positive = 300.0
     adopt_rtd_estimates: bool = False
     adopt_findings: bool = True
+    adoption_delay_s: NonNegative = 60.0
+    adoption_wait_s: Positive = 60.0
 
     @model_validator(mode="after")
     def _model_complete(self) -> BlenderModelConfig:
@@ -364,6 +374,14 @@ class LineSpec(LineConfig):
         return self
 
     # ------------------------------------------------------------------ helpers
+    def adoption_sources(self) -> list[str]:
+        """The services whose model updates the blender and the diverter adopt and wait for
+        (``blender.adoption_delay_s``): ``rtd`` with ``adopt_rtd_estimates``, ``closeloop``
+        with ``adopt_findings``, each when it runs."""
+        b = self.blender
+        wanted = {"rtd": b.adopt_rtd_estimates, "closeloop": b.adopt_findings}
+        return [s for s in ("rtd", "closeloop") if wanted[s] and s in self.services]
+
     def limits(self, component: str) -> SpecLimits | None:
         for s in self.spec:
             if s.component == component:

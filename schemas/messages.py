@@ -112,6 +112,12 @@ class RtdEstimate(Message):
     )
     n_points: int = Field(default=0, ge=0, description="number of points fitted")
     rmse: NonNegative | None = Field(default=None, description="root-mean-square residual")
+    applies_from_s: NonNegative | None = Field(
+        default=None,
+        description="plant time from which the twin predicts with this estimate: the plant "
+        "time of the NIR sample that completed it plus blender.adoption_delay_s (None, contract "
+        "< 1.5: t + blender.adoption_delay_s)",
+    )
 
     @model_validator(mode="after")
     def _params_nonempty(self) -> RtdEstimate:
@@ -133,6 +139,29 @@ class RtdSkipped(Message):
     pulse_t_s: NonNegative = Field(description="plant time of the pulse (or its segment start)")
     reason: Literal["fit_failed", "skipped_disturbance"] = Field(description="why no estimate")
     detail: Text = Field(description="what happened")
+
+
+class AdoptionProgress(Message):
+    """How far a producer of model updates (the rtd or closeloop service) has got. Key:
+    ``twin/<line>/<unit>/progress`` (``unit``: ``rtd`` or ``closeloop``).
+
+    ``complete_to_s``: every :class:`RtdEstimate` (or ``ModelFinding``) of this producer whose
+    ``applies_from_s`` is <= this plant time has been published. The blender predicts a tick,
+    and the diverter decides at a plant time, only once every producer it adopts from has got
+    that far, so the adopted model at each plant time, and with it every output, is a function
+    of the plant data only (not of machine load or restarts). ``last_update_t_s`` lets them
+    tell that no update published before the report is still on its way.
+    """
+
+    SIGNAL = "progress"
+
+    complete_to_s: NonNegative = Field(description="updates applying up to here are published")
+    last_update_t_s: NonNegative | None = Field(
+        default=None,
+        description="t of the newest update this publisher published before this report (None: "
+        "none since it started): a subscriber counts the report once it has that update (the "
+        "bus may deliver the two keys out of order)",
+    )
 
 
 class OosAlert(Message):
@@ -280,6 +309,7 @@ MESSAGE_MODELS: tuple[type[Message], ...] = (
     Event,
     RtdEstimate,
     RtdSkipped,
+    AdoptionProgress,
     OosAlert,
     DivertCommand,
     DemJobRequest,

@@ -9,10 +9,21 @@ effects the blender cannot adopt are counted in ``not_adopted``). Publishes one
 :class:`~schemas.messages.PredictedConcentration` per component per tick on
 ``twin/<line>/blender/outlet/predicted``.
 
-A restarted blender recomputes from the flow history and does not publish a tick again: the last
-published tick is written to the run's state directory after each tick (one ``pwrite`` of a
-fixed-width number: a crash between a publication and its mark repeats at most that tick, which
-the subscribers and the recorder drop as a duplicate).
+Adoption is a function of plant time only: an estimate or a finding applies from its
+``applies_from_s`` (``twin_core.online.blender.BlenderKernel.schedule``), and a tick is predicted
+only once every service it adopts from (``LineSpec.adoption_sources``) has said, with its
+``AdoptionProgress``, that every update applying up to that tick is out; until then the feeder
+flows wait (counted in ``held_for_adoption``). An update that comes after its tick was predicted
+all the same (a producer that does not report its progress) is applied from the next tick,
+counted in ``adopted_late`` with the largest lateness in ``adopted_late_max_ms`` (plant time)
+and logged. A producer that reports nothing for ``blender.adoption_wait_s`` wall seconds (down)
+holds the predictions back no longer (``adoption_bypassed``) until it reports again.
+
+A restarted blender recomputes from the flow history and publishes again only the last
+``republish_ticks`` ticks before the last one it marked: the last published tick is written to
+the run's state directory after each tick (one ``pwrite`` of a fixed-width number), and a crash
+can come between a publication and its mark, or after the mark while the tick is still in the
+process's send queue; the subscribers and the recorder drop what they had as duplicates.
 """
 
 from __future__ import annotations
@@ -23,11 +34,18 @@ from typing import Any
 from schemas import keys
 from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
-from schemas.messages import Event, FeederFlow, PredictedConcentration, RtdEstimate
-from services.common import TickMark
+from schemas.messages import (
+    AdoptionProgress,
+    Event,
+    FeederFlow,
+    PredictedConcentration,
+    RtdEstimate,
+)
+from services.common import AdoptionGate, TickMark, applies_from, record_late
 from services.service import Service
 from twin_core.online.blender import BlenderPredictor
 from twin_core.online.inlet import event_record
+from twin_core.plant.effects import make_effect
 
 log = logging.getLogger(__name__)
 
@@ -35,11 +53,17 @@ log = logging.getLogger(__name__)
 class BlenderService(Service):
     """See the module docstring."""
 
+    #: ticks before the last one marked that a restarted blender publishes again: a crash just
+    #: after the mark can lose what was still in the process's send queue (the subscribers and
+    #: the recorder drop the ones they had as duplicates)
+    republish_ticks = 20
+
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
         super().__init__("blender", spec=spec, **kwargs)
         self.core = BlenderPredictor(spec)
         self._mark = TickMark(self.state_path / "blender.last_t")
         self.last_published_t = self._mark.read()
+        self.gate = AdoptionGate(spec.adoption_sources())
 
     def setup(self) -> None:
         line = self.spec.name
@@ -52,24 +76,58 @@ class BlenderService(Service):
             self.history_subscribe(keys.rtd_estimate(line), RtdEstimate)
         if self.spec.blender.adopt_findings:
             self.history_subscribe(keys.model_finding(line), ModelFinding)
+        for source in self.gate.sources:
+            self.history_subscribe(keys.adoption_progress(line, source), AdoptionProgress)
 
     def handle(self, key: str, msg: Any) -> None:
         if isinstance(msg, FeederFlow):
-            self._flow(key, msg)
+            if self.gate.hold(key, msg):
+                self.counters.inc("held_for_adoption")
+            else:
+                self._flow(key, msg)
         elif isinstance(msg, Event):
             if self.core.add_event(event_record(msg)):
                 self.counters.inc("tracer_pulses")
         elif isinstance(msg, RtdEstimate):
-            self.core.adopt_estimate(msg.model, msg.params)
+            late = self.core.schedule(
+                applies_from(msg, self.spec), "estimate", (msg.model, msg.params)
+            )
+            record_late(self, late, msg)
             self.counters.inc("rtd_adopted")
+            self._progress(self.gate.update("rtd", msg.t))
         elif isinstance(msg, ModelFinding):
             self._finding(msg)
+            self._progress(self.gate.update("closeloop", msg.t))
+        elif isinstance(msg, AdoptionProgress):
+            unit = keys.parse_key(key).unit
+            self._progress(self.gate.report(unit, msg.complete_to_s, msg.last_update_t_s))
+
+    def idle(self) -> None:
+        # a producer down for long must not stop the predictions (module docstring)
+        if self.gate.stalled(self.spec.blender.adoption_wait_s):
+            self.counters.inc("adoption_bypassed")
+            log.warning(
+                "blender: no progress of %s for %.0f s; predicting without waiting for them",
+                "/".join(self.gate.sources),
+                self.spec.blender.adoption_wait_s,
+            )
+            for k, flow in self.gate.release_all():
+                self._flow(k, flow)
+
+    def _progress(self, moved: bool) -> None:
+        """The flows the gate frees when a producer's progress moved."""
+        if moved:
+            for k, flow in self.gate.free():
+                self._flow(k, flow)
 
     def _finding(self, msg: ModelFinding) -> None:
         new = [e.model_dump() for e in msg.model_effects]
-        if self.core.kernel.same_effects(new):
+        if new == self.core.kernel.latest_effects:
             return
-        left = self.core.set_effects(new)
+        late = self.core.schedule(applies_from(msg, self.spec), "effects", new)
+        record_late(self, late, msg)
+        effs = [make_effect(e) for e in new]
+        left = [e for e in effs if not self.core.kernel.adoptable(e)]
         self.counters.inc("findings_adopted")
         if left:
             self.counters.inc("not_adopted", len(left))
@@ -86,8 +144,8 @@ class BlenderService(Service):
             return
         n_comp = len(self.core.comp_names)
         for t, conc in self.core.push(feeder, msg.t, msg.mass_flow_kg_h, msg.refilling):
-            if t <= self.last_published_t:
-                continue  # already published before a restart
+            if t <= self.last_published_t - self.republish_ticks * self.spec.dt_s:
+                continue  # published before a restart (the last ticks are sent again)
             for i, c in enumerate(self.core.comp_names):
                 self.pub.publish(
                     PredictedConcentration(

@@ -138,6 +138,11 @@ class Counters:
         with self._lock:
             return self._values.get(name, 0)
 
+    def raise_to(self, name: str, value: int) -> None:
+        """Set counter ``name`` to ``value`` if that is larger (a running maximum)."""
+        with self._lock:
+            self._values[name] = max(self._values.get(name, 0), value)
+
     def snapshot(self) -> dict[str, int]:
         with self._lock:
             return dict(self._values)

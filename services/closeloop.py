@@ -13,6 +13,13 @@ with its product-side reading and the measurement that would settle it, structur
 effect library, the model's full effect list (what the blender adopts; the product-side reading
 when the product is at risk: the diverter acts on it) and RMSE / MAE before and after.
 
+Each finding applies from the end of its window plus ``blender.adoption_delay_s``
+(``applies_from_s``); the service reports on ``twin/<line>/closeloop/progress``
+(:class:`~schemas.messages.AdoptionProgress`, from the worker, after the findings before it)
+that every finding applying up to the last complete tick plus that delay is out: the blender
+and the diverter adopt each finding at its plant time whatever the machine load, and a window
+that fails (``window_errors``) holds nobody back.
+
 The identification of a window (about a second) runs in a worker thread, windows in plant-time
 order, so the bus callbacks never wait for it and the findings do not depend on timing. A
 restarted service recomputes the findings from the publishers' history (the adopted model
@@ -29,8 +36,8 @@ from typing import Any
 from schemas import keys
 from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
-from schemas.messages import Event, FeederFlow, MeasuredConcentration
-from services.common import OutputLog
+from schemas.messages import AdoptionProgress, Event, FeederFlow, MeasuredConcentration
+from services.common import OutputLog, ProgressReport
 from services.service import Service
 from twin_core.closeloop.online import OnlineCloseLoop, WindowData
 from twin_core.closeloop.report import Finding
@@ -43,7 +50,7 @@ def finding_id(line: str, t_end_s: float) -> str:
     return f"{line}.closeloop-{int(round(t_end_s * 1000)):012d}"
 
 
-def to_message(f: Finding, line: str, seq: int) -> ModelFinding:
+def to_message(f: Finding, line: str, seq: int, applies_from_s: float) -> ModelFinding:
     """The wire message of a finding (validated: a finding that does not fit raises)."""
     return ModelFinding.model_validate(
         {
@@ -63,6 +70,7 @@ def to_message(f: Finding, line: str, seq: int) -> ModelFinding:
             "structure": f.structure,
             "remaining": f.remaining,
             "errors": f.errors,
+            "applies_from_s": applies_from_s,
         }
     )
 
@@ -73,6 +81,8 @@ class CloseLoopService(Service):
     #: inputs in plant-time order whatever their arrival, up to two publisher heartbeats late
     #: (``services.service.Service``): the findings are a function of the plant data only
     reorder_s = 1.0
+    #: plant seconds between two progress reports
+    progress_step_s = 5.0
 
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
         super().__init__("closeloop", spec=spec, **kwargs)
@@ -88,12 +98,20 @@ class CloseLoopService(Service):
             max_effects=c.max_effects,
         )
         self.log_ids = OutputLog(self.state_path / "closeloop.published")
-        self._jobs: queue.SimpleQueue[WindowData | None] = queue.SimpleQueue()
+        self.progress = ProgressReport(self.state_path / "closeloop.progress", self.progress_step_s)
+        #: the worker's jobs in order: a window, a progress report (t, complete to), a flush
+        #: of the progress report (True), the end (None)
+        self._jobs: queue.SimpleQueue[WindowData | tuple[float, float] | bool | None] = (
+            queue.SimpleQueue()
+        )
         self._worker: threading.Thread | None = None
 
     def setup(self) -> None:
         line = self.spec.name
         self.pub = self.publisher(keys.model_finding(line), ModelFinding, history=True)
+        self.progress.pub = self.publisher(
+            keys.adoption_progress(line, "closeloop"), AdoptionProgress, history=True
+        )
         self.history_subscribe(keys.feeder_flows(line), FeederFlow)
         self.history_subscribe(
             keys.measured_concentration(line, self.spec.sensor.id), MeasuredConcentration
@@ -112,29 +130,44 @@ class CloseLoopService(Service):
         if kind in ("flow", "measured"):
             for w in self.core.due():
                 self._jobs.put(self.core.snapshot(w))
+            last = self.core.record.last_complete_tick()
+            if last is not None:
+                # every later window ends after the last complete tick
+                t_last = last * self.spec.dt_s
+                self._jobs.put((t_last, t_last + self.spec.blender.adoption_delay_s))
+
+    def idle(self) -> None:
+        self._jobs.put(True)
 
     def _work(self) -> None:
         while True:
             data = self._jobs.get()
             if data is None:
                 return
+            if data is True:
+                self.progress.flush()
+                continue
+            if isinstance(data, tuple):
+                self.progress.advance(*data)
+                continue
             try:
                 f = self.core.evaluate(data)
-                self._publish(f)
+                self._publish(f, data.window.t_end_s + self.spec.blender.adoption_delay_s)
             except Exception as exc:  # noqa: BLE001 - one bad window must not stop the loop
                 self.counters.inc("window_errors")
                 self.counters.last_error = f"{type(exc).__name__}: {exc}"[:500]
                 log.exception("closeloop: window %s failed", data.window)
 
-    def _publish(self, f: Finding) -> None:
+    def _publish(self, f: Finding, applies_from_s: float) -> None:
         self.counters.inc("windows_checked")
         self.counters.inc(f"status_{f.status}")
         fid = finding_id(self.spec.name, f.t_end_s)
         if fid in self.log_ids:
             self.counters.inc("suppressed_republish")
             return
-        msg = self.pub.publish(to_message(f, self.spec.name, self.pub.seq))
+        msg = self.pub.publish(to_message(f, self.spec.name, self.pub.seq, applies_from_s))
         self.log_ids.add(fid)
+        self.progress.updated(msg.t)
         if f.status in ("explained", "partly_explained"):
             log.info(
                 "closeloop: window %.0f-%.0f s %s by %s (held-out RMSE %.3f -> %.3f)%s",
@@ -150,7 +183,9 @@ class CloseLoopService(Service):
             self.counters.inc("product_at_risk")
 
     def finish(self) -> None:
+        self._jobs.put(True)
         self._jobs.put(None)
         if self._worker is not None:
             self._worker.join(timeout=30.0)
+        self.progress.close()
         self.log_ids.close()

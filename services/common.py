@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import fcntl
 import json
+import math
 import os
+import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any, Protocol
 
 from schemas.line import LineSpec
-from schemas.messages import DivertCommand, OosAlert, ServiceHealth
+from schemas.messages import AdoptionProgress, DivertCommand, OosAlert, ServiceHealth
 
 #: environment variable naming the run's state directory (set by the supervisor)
 STATE_ENV = "TWIN_STATE_DIR"
@@ -68,6 +71,195 @@ class TickMark:
 
     def close(self) -> None:
         os.close(self._fd)
+
+
+def applies_from(msg: Any, spec: LineSpec) -> float:
+    """Plant time from which an ``RtdEstimate`` or a ``ModelFinding`` applies: its
+    ``applies_from_s``, or (a message of contract < 1.5) ``t + blender.adoption_delay_s``."""
+    t_from = getattr(msg, "applies_from_s", None)
+    return float(msg.t + spec.blender.adoption_delay_s if t_from is None else t_from)
+
+
+class ProducerProgress:
+    """How far each producer of model updates (``rtd``, ``closeloop``) is known complete, from
+    its ``AdoptionProgress`` reports and the updates received: a report counts only once the
+    update it names (``last_update_t_s``) has arrived, since the bus may deliver the two keys
+    out of order (a sample recovered from the publisher's cache comes later)."""
+
+    def __init__(self, sources: list[str]) -> None:
+        self.sources = list(sources)
+        self.complete: dict[str, float] = {s: -math.inf for s in self.sources}
+        self._newest: dict[str, float] = {s: -math.inf for s in self.sources}
+        self._waiting: dict[str, list[tuple[float, float]]] = {s: [] for s in self.sources}
+        #: wall time (monotonic) the progress last moved (or the start)
+        self.moved_at = time.monotonic()
+
+    @property
+    def complete_to_s(self) -> float:
+        """Plant time up to which every update of every producer is in (inf without any)."""
+        return min(self.complete.values(), default=math.inf)
+
+    def update(self, source: str, t: float) -> bool:
+        """An update of plant time ``t`` from ``source`` arrived; returns whether that made a
+        waiting report count (:attr:`complete` moved)."""
+        if source not in self._newest:
+            return False
+        self._newest[source] = max(self._newest[source], t)
+        return self._settle(source)
+
+    def report(self, source: str, complete_to_s: float, last_update_t_s: float | None) -> bool:
+        """A progress report of ``source``; returns whether :attr:`complete` moved."""
+        if source not in self._waiting:
+            return False
+        need = -math.inf if last_update_t_s is None else last_update_t_s
+        self._waiting[source].append((need, complete_to_s))
+        return self._settle(source)
+
+    def _settle(self, source: str) -> bool:
+        have, before = self._newest[source], self.complete[source]
+        kept = []
+        for need, w in self._waiting[source]:
+            if need <= have:
+                self.complete[source] = max(self.complete[source], w)
+            else:
+                kept.append((need, w))
+        self._waiting[source] = kept
+        if self.complete[source] > before:
+            self.moved_at = time.monotonic()
+            return True
+        return False
+
+    def silent_for(self, wait_s: float, waiting_since: float = -math.inf) -> bool:
+        """Whether there are producers and their progress has not moved for ``wait_s`` wall
+        seconds while something waited for it (since ``waiting_since``, monotonic): down or
+        stuck, the outputs may go on without them."""
+        quiet_since = max(self.moved_at, waiting_since)
+        return bool(self.sources) and time.monotonic() - quiet_since > wait_s
+
+
+class AdoptionGate(ProducerProgress):
+    """Feeder flows held until every producer of model updates has reported that every update
+    applying up to their plant time is in (:class:`ProducerProgress`); the model used at each
+    plant time is then a function of the plant data only. No sources: nothing is held."""
+
+    def __init__(self, sources: list[str]) -> None:
+        super().__init__(sources)
+        self._held: list[tuple[str, Any]] = []
+        #: wall time (monotonic) the oldest held flow was held
+        self.held_since = -math.inf
+        #: go on without the producers (they were silent too long) until they move again
+        self.bypass = False
+
+    def _settle(self, source: str) -> bool:
+        moved = super()._settle(source)
+        if moved:
+            self.bypass = False
+        return moved
+
+    def release_all(self) -> list[tuple[str, Any]]:
+        """Every held flow, in arrival order; then go on without the producers until their
+        progress moves again (:attr:`bypass`)."""
+        free, self._held = self._held, []
+        self.bypass = True
+        return free
+
+    def hold(self, key: str, msg: Any) -> bool:
+        """Whether the flow ``msg`` on ``key`` must wait (then kept, in arrival order)."""
+        if self.bypass and not self._held:
+            return False
+        if self._held or msg.t > self.complete_to_s:
+            if not self._held:
+                self.held_since = time.monotonic()
+            self._held.append((key, msg))
+            return True
+        return False
+
+    def stalled(self, wait_s: float) -> bool:
+        """Whether flows have waited ``wait_s`` wall seconds without the producers' progress
+        moving (:meth:`ProducerProgress.silent_for`)."""
+        return bool(self._held) and self.silent_for(wait_s, self.held_since)
+
+    def free(self) -> list[tuple[str, Any]]:
+        """The held flows now free, in arrival order (each key's flows stay in order: a flow
+        waits behind an earlier one of its key)."""
+        bound, free, kept, blocked = self.complete_to_s, [], [], set()
+        for key, msg in self._held:
+            if key in blocked or msg.t > bound:
+                blocked.add(key)
+                kept.append((key, msg))
+            else:
+                free.append((key, msg))
+        self._held = kept
+        return free
+
+    def __len__(self) -> int:
+        return len(self._held)
+
+
+class ProgressReport:
+    """A producer's :class:`~schemas.messages.AdoptionProgress`: how far its model updates are
+    complete. Published when it has moved ``step_s`` of plant time, and on :meth:`flush` (the
+    producer idle: the last one is never held back); never again below what was published
+    before a restart (the mark is kept in the run's state directory). ``pub``: the producer's
+    publisher, set once its session is open (until then nothing is published)."""
+
+    def __init__(self, mark_path: Path, step_s: float) -> None:
+        self.pub: Any = None
+        self.step_s = step_s
+        self._mark = TickMark(mark_path)
+        self.sent = self._mark.read()
+        self._pending: tuple[float, float] | None = None
+        #: ``t`` of the newest update published by this process (None: none yet)
+        self.last_update_t: float | None = None
+
+    def updated(self, t: float) -> None:
+        """The producer published an update of plant time ``t``."""
+        self.last_update_t = t
+
+    def advance(self, t: float, complete_to_s: float) -> None:
+        """Every update applying up to ``complete_to_s`` is out (data read up to ``t``)."""
+        if complete_to_s <= self.sent:
+            return
+        self._pending = (t, complete_to_s)
+        if complete_to_s - self.sent >= self.step_s:
+            self.flush()
+
+    def flush(self) -> None:
+        if self._pending is None or self.pub is None:
+            return
+        t, w = self._pending
+        self._pending = None
+        self.pub.publish(
+            AdoptionProgress(
+                t=t, seq=self.pub.seq, complete_to_s=w, last_update_t_s=self.last_update_t
+            )
+        )
+        self.sent = w
+        self._mark.write(w)
+
+    def close(self) -> None:
+        self._mark.close()
+
+
+class _Reporting(Protocol):
+    name: str
+    counters: Any
+    warnings: Any
+
+
+def record_late(service: _Reporting, late_s: float, msg: Any) -> None:
+    """An update that came ``late_s`` of plant time after the first output it applies to
+    (0: in time): counted in ``adopted_late``, the largest in ``adopted_late_max_ms``,
+    logged (rate-limited)."""
+    if late_s <= 0:
+        return
+    service.counters.inc("adopted_late")
+    service.counters.raise_to("adopted_late_max_ms", int(round(late_s * 1000)))
+    service.warnings.warn(
+        "adopted_late",
+        f"{service.name}: {type(msg).__name__} of t={msg.t:.1f} s applied {late_s:.1f} s "
+        "of plant time late (its producer did not report its progress in time)",
+    )
 
 
 def state_dir(spec: LineSpec) -> Path:

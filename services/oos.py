@@ -8,7 +8,14 @@ outlet, merged in plant time; see there). Subscribes the feeder flows
 pulses, the replay's end of stream) and, as the blender does (``blender.adopt_rtd_estimates``,
 ``blender.adopt_findings``), RTD estimates and closeloop findings: the diverter follows the
 model the blender adopted, and a finding with the product at risk whose product-side reading
-leaves the specification diverts its window (``OosCore.finding``). Publishes :class:`~schemas.messages.OosAlert` on
+leaves the specification diverts its window (``OosCore.finding``). The model follows the
+estimates and findings in plant time, as the blender's does: each applies from its
+``applies_from_s``, and the decisions at a plant time wait until every service adopted from has
+reported (``AdoptionProgress``) that the updates applying up to there are out (two more streams
+of the merge; the wall-clock releases below decide only up to there, unless the producers have
+been silent for ``blender.adoption_wait_s``: ``adoption_bypassed``); one that comes late all
+the same is counted in ``adopted_late`` (largest lateness in ``adopted_late_max_ms``) and
+logged. Publishes :class:`~schemas.messages.OosAlert` on
 ``twin/<line>/oos/alert`` (one per episode, when its window is complete) and
 :class:`~schemas.messages.DivertCommand` on ``twin/<line>/divert/command`` (``<alert>.open`` as
 soon as an episode is known, early for feeder disturbances; ``<alert>.final`` with the final
@@ -33,6 +40,7 @@ status``), until it is restarted with a configuration that matches.
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 from schemas import keys
@@ -40,6 +48,7 @@ from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import (
     END_OF_STREAM,
+    AdoptionProgress,
     DivertCommand,
     Event,
     FeederFlow,
@@ -48,7 +57,7 @@ from schemas.messages import (
     PredictedConcentration,
     RtdEstimate,
 )
-from services.common import OutputLog
+from services.common import OutputLog, ProducerProgress, applies_from, record_late
 from services.service import Service
 from twin_core.online.diverter import DiverterOutput
 from twin_core.online.feed import FeedCheck
@@ -99,6 +108,7 @@ class OosService(Service):
         self.core.inlet_grace_s = self.inlet_grace_s
         self.log_ids = OutputLog(self.state_path / "oos.published")
         self.feed = FeedCheck(spec)
+        self.producers = ProducerProgress(self.core.adoption_sources)
         self._idle = 0.0
 
     def setup(self) -> None:
@@ -118,6 +128,8 @@ class OosService(Service):
             self.history_subscribe(keys.rtd_estimate(line), RtdEstimate)
         if b.adopt_findings:
             self.history_subscribe(keys.model_finding(line), ModelFinding)
+        for source in self.core.adoption_sources:
+            self.history_subscribe(keys.adoption_progress(line, source), AdoptionProgress)
 
     def _check_feed(self, key: str, msg: Any) -> bool:
         """Whether the feed matches the configuration (module docstring); refuse it if not."""
@@ -161,7 +173,20 @@ class OosService(Service):
                 "oos: a stream stalled for %.0f s; deciding on the streams present",
                 self.spec.oos.stall_release_s,
             )
-            self.emit(core.release_all())
+            self.emit(core.release_all(self._release_bound()))
+
+    def _release_bound(self) -> float:
+        """Merge time up to which the wall-clock releases may decide: where the model updates
+        are known complete, or anywhere once the producers have been silent for
+        ``blender.adoption_wait_s`` (counted in ``adoption_bypassed``)."""
+        p = self.producers
+        waiting_since = self.core.last_release or -math.inf  # decisions pending since
+        if p.complete_to_s == math.inf or not p.silent_for(
+            self.spec.blender.adoption_wait_s, waiting_since
+        ):
+            return p.complete_to_s
+        self.counters.inc("adoption_bypassed")
+        return math.inf
 
     def _decide(self, key: str, msg: Any) -> list[DiverterOutput] | None:
         """The core's outputs for one message (None: nothing to decide on)."""
@@ -181,18 +206,33 @@ class OosService(Service):
             if core.add_event(event_record(msg)):
                 self.counters.inc("tracer_pulses")
             return None
+        if isinstance(msg, AdoptionProgress):
+            unit = keys.parse_key(key).unit
+            return self._progress(
+                unit, self.producers.report(unit, msg.complete_to_s, msg.last_update_t_s)
+            )
         if isinstance(msg, RtdEstimate):
-            core.adopt_estimate(msg.model, msg.params)
+            late = core.schedule(applies_from(msg, self.spec), "estimate", (msg.model, msg.params))
+            record_late(self, late, msg)
             self.counters.inc("rtd_adopted")
-        elif isinstance(msg, ModelFinding):
-            adopted = not core.kernel.same_effects([e.model_dump() for e in msg.model_effects])
-            outs = core.finding(msg.model_dump())
-            if adopted:
+            return self._progress("rtd", self.producers.update("rtd", msg.t))
+        if isinstance(msg, ModelFinding):
+            new = [e.model_dump() for e in msg.model_effects]
+            if new != core.kernel.latest_effects:
+                record_late(self, core.schedule(applies_from(msg, self.spec), "effects", new), msg)
                 self.counters.inc("findings_adopted")
+            outs = core.finding(msg.model_dump())
+            outs += self._progress("closeloop", self.producers.update("closeloop", msg.t))
             if msg.product_at_risk:
                 self.counters.inc("product_at_risk")
             return outs
         return None
+
+    def _progress(self, source: str, moved: bool) -> list[DiverterOutput]:
+        """The decisions a producer's progress frees (when it moved)."""
+        if not moved:
+            return []
+        return self.core.progress(source, self.producers.complete[source])
 
     def emit(self, outs: list[DiverterOutput]) -> None:
         for o in outs:
@@ -203,16 +243,20 @@ class OosService(Service):
             pub.publish(to_message(o, pub.seq))
             self.log_ids.add(o.id)
             self.counters.inc("alerts" if o.kind == "alert" else "divert_commands")
+        if self.core.finished and not self.counters.get("stream_ended"):
+            self.counters.inc("stream_ended")  # the replay's end: every decision is out
 
     def idle(self) -> None:
         # a stream that went quiet (e.g. no blender) must not hold decisions back forever
         self._idle += self.idle_s
         if self._idle >= self.idle_release_s:
-            if self.core.end_t is not None:
+            bound = self._release_bound()
+            if self.core.end_t is not None and bound >= self.core.end_t:
                 self.emit(self.core.end_of_stream())  # a stream never reached the end
             elif self.core.pending:
-                # everything went quiet: release the held inlet ticks too
-                self.emit(self.core.release_all())
+                # everything went quiet: release the held inlet ticks too (up to where the
+                # model updates are known)
+                self.emit(self.core.release_all(bound))
 
     def finish(self) -> None:
         self.log_ids.close()

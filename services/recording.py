@@ -1061,6 +1061,7 @@ class BusReplay:
         from services.bus import ping
 
         svc = self.svc.open()
+        svc.state = "running"  # a tool publishing, no inputs to catch up on
         history = self.spec is not None
         try:
             recorded = sorted({m.key for m in self.rec.messages})

@@ -12,6 +12,12 @@ the reason (:class:`~schemas.messages.RtdSkipped` on ``twin/<line>/rtd/skipped``
 failed, or an excursion of unknown cause while a known disturbance could reach the outlet), so
 that a report lists it rather than missing it silently.
 
+Each estimate applies from the plant time of the NIR sample that completed it plus
+``blender.adoption_delay_s`` (``applies_from_s``); after each NIR sample the service reports on
+``twin/<line>/rtd/progress`` (:class:`~schemas.messages.AdoptionProgress`, every
+``progress_step_s`` of plant time and when idle) that every estimate applying up to that time is
+out, so the blender and the diverter adopt it at that plant time whatever the machine load.
+
 The estimates are a function of the plant data only: inputs are handled in plant-time order
 after ``reorder_s`` (``services.service.Service``), so a tracer event that arrives a little after
 the NIR samples of its time (another route) is still announced before them; a restarted service
@@ -25,8 +31,15 @@ from typing import Any
 
 from schemas import keys
 from schemas.line import LineSpec
-from schemas.messages import Event, FeederFlow, MeasuredConcentration, RtdEstimate, RtdSkipped
-from services.common import OutputLog
+from schemas.messages import (
+    AdoptionProgress,
+    Event,
+    FeederFlow,
+    MeasuredConcentration,
+    RtdEstimate,
+    RtdSkipped,
+)
+from services.common import OutputLog, ProgressReport
 from services.service import Service
 from twin_core.online.inlet import event_record
 from twin_core.online.rtd import PulseOutcome, RtdCore
@@ -44,16 +57,22 @@ class RtdService(Service):
 
     #: inputs in plant-time order whatever their arrival, up to two publisher heartbeats late
     reorder_s = 1.0
+    #: plant seconds between two progress reports
+    progress_step_s = 5.0
 
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
         super().__init__("rtd", spec=spec, **kwargs)
         self.core = RtdCore(spec)
         self.log_ids = OutputLog(self.state_path / "rtd.published")
+        self.progress = ProgressReport(self.state_path / "rtd.progress", self.progress_step_s)
 
     def setup(self) -> None:
         line = self.spec.name
         self.pub = self.publisher(keys.rtd_estimate(line), RtdEstimate, history=True)
         self.skipped_pub = self.publisher(keys.rtd_skipped(line), RtdSkipped, history=True)
+        self.progress.pub = self.publisher(
+            keys.adoption_progress(line, "rtd"), AdoptionProgress, history=True
+        )
         self.history_subscribe(
             keys.measured_concentration(line, self.spec.sensor.id), MeasuredConcentration
         )
@@ -66,13 +85,21 @@ class RtdService(Service):
                 self.counters.inc("tracer_events")
         elif isinstance(msg, FeederFlow):
             self.core.flow(keys.parse_key(key).id, msg.t, msg.refilling)
-        elif isinstance(msg, MeasuredConcentration) and msg.quality != "bad":
-            outcome = self.core.measured(msg.t, msg.concentration_pct_w_w)
-            if outcome is not None:
-                self.publish_outcome(outcome)
+        elif isinstance(msg, MeasuredConcentration):
+            if msg.quality != "bad":
+                outcome = self.core.measured(msg.t, msg.concentration_pct_w_w)
+                if outcome is not None:
+                    self.publish_outcome(outcome, msg.t)
+            # every later outcome comes from a later sample: it applies after this time
+            self.progress.advance(msg.t, msg.t + self.spec.blender.adoption_delay_s)
 
-    def publish_outcome(self, o: PulseOutcome) -> None:
-        """The estimate of a fitted pulse, or why a pulse gave none (once per pulse)."""
+    def idle(self) -> None:
+        self.progress.flush()
+
+    def publish_outcome(self, o: PulseOutcome, t_data: float) -> None:
+        """The estimate of a fitted pulse (applying from ``t_data``, the plant time of the sample
+        that completed it, plus ``blender.adoption_delay_s``), or why a pulse gave none (once
+        per pulse)."""
         oid = outcome_id(self.spec.name, o.segment.t0)
         if oid in self.log_ids:
             self.counters.inc("suppressed_republish")
@@ -103,9 +130,11 @@ class RtdService(Service):
                     pulse_t_s=r.pulse_t_s,
                     n_points=r.n_points,
                     rmse=r.rmse,
+                    applies_from_s=t_data + self.spec.blender.adoption_delay_s,
                 )
             )
             self.counters.inc("estimates")
+            self.progress.updated(t)
         self.log_ids.add(oid)
 
     def _skip(self, t: float, o: PulseOutcome, reason: str, detail: str) -> None:
@@ -115,4 +144,6 @@ class RtdService(Service):
         )
 
     def finish(self) -> None:
+        self.progress.flush()
+        self.progress.close()
         self.log_ids.close()

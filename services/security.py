@@ -54,8 +54,12 @@ def published_keys(spec: LineSpec, identity: str) -> list[str]:
     outputs = {
         "oos": [keys.oos_alert(line), keys.divert_command(line)],
         "blender": [keys.predicted_concentration(line, "outlet")],
-        "rtd": [keys.rtd_estimate(line), keys.rtd_skipped(line)],
-        "closeloop": [keys.model_finding(line)],
+        "rtd": [
+            keys.rtd_estimate(line),
+            keys.rtd_skipped(line),
+            keys.adoption_progress(line, "rtd"),
+        ],
+        "closeloop": [keys.model_finding(line), keys.adoption_progress(line, "closeloop")],
         "dem": [keys.dem_jobs(line, "progress"), keys.dem_jobs(line, "result")],
         "operator": [keys.dem_requests(line)],
         "plant": [

@@ -31,6 +31,7 @@ for ``idle_s``) and :meth:`Service.finish` (at shutdown).
 
 from __future__ import annotations
 
+import gc
 import heapq
 import json
 import logging
@@ -129,6 +130,7 @@ class Service:
         #: why the service refuses its input (None: it does not), see :meth:`refuse`
         self.refusal: str | None = None
         self._hlock = threading.RLock()
+        self._health_lock = threading.Lock()
         self._direct = False
         self._active = False
         self._t0 = time.monotonic()
@@ -155,7 +157,8 @@ class Service:
                 ServiceHealth,
                 counters=Counters(),
             )
-            self.state = "running"
+            # a live-twin service is ``starting`` until its catch-up is done (:meth:`run`)
+            self.state = "starting" if self.spec is not None else "running"
             self.publish_health()
             if self.health_period_s > 0:
                 self._health_thread = threading.Thread(
@@ -402,8 +405,27 @@ class Service:
             self.counters.inc("caught_up", len(batch))
             for _, key, _, msg in batch:
                 self._admit(key, msg)
+            self._freeze_heap()
             self._direct = True
             self.state = "running"
+        self.publish_health()  # the end of the catch-up, at once
+
+    #: the cyclic garbage collector's generation-0 threshold once running (CPython's default is
+    #: 700 allocations: with a large heap of long-lived objects a collection every few
+    #: messages; the older generations are rare and, after :meth:`_freeze_heap`, small)
+    gc_threshold0: int = 20_000
+
+    def _freeze_heap(self) -> None:
+        """After the start-up and catch-up: collect once, then move every object alive (modules,
+        numba and pydantic machinery, the recomputed state) to the collector's permanent
+        generation and raise the generation-0 threshold, so that later collections scan only
+        what the running service allocates (a full collection of the diverter's start-up heap,
+        ~84 000 objects, took 160-460 ms on the loaded 2-core machine, after the freeze
+        < 0.01 ms)."""
+        gc.collect()
+        gc.freeze()
+        _, g1, g2 = gc.get_threshold()
+        gc.set_threshold(self.gc_threshold0, g1, g2)
 
     def refuse(self, reason: str) -> None:
         """The service refuses its input for ``reason``: logged as an error, its health is
@@ -452,7 +474,8 @@ class Service:
 
     def publish_health(self) -> ServiceHealth:
         assert self._health_pub is not None
-        return self._health_pub.publish(self.health())
+        with self._health_lock:  # the health thread and the catch-up's end
+            return self._health_pub.publish(self.health())
 
     def _health_loop(self) -> None:
         while not self.stop_flag.wait(self.health_period_s):

@@ -146,6 +146,8 @@ class Supervisor:
         self.log_level = log_level
         self.children = {n: Child(n) for n in names}
         self.alive: set[str] = set()
+        #: held while the router's session is replaced (:meth:`restart_router`)
+        self._router_lock = threading.Lock()
         self._recheck = False
         self.session: zenoh.Session | None = None
         self.creds: RunCredentials | None = None
@@ -197,13 +199,22 @@ class Supervisor:
             )
 
     def _open_router(self) -> None:
-        spec = self.spec
-        bus = spec.router_bus()
         if self.secure:
             identities = [*self.names, *TOOL_IDENTITIES]
             self.creds = RunCredentials.generate(identities)
             self.creds.write_tool_files(self.run_dir)
             self._dictionary = RouterDictionary(self.creds, self.run_dir)
+        self._open_router_session()
+        if self._dictionary is not None:
+            self._dictionary.router_opened()
+
+    def _open_router_session(self) -> None:
+        """The router's session (with this run's credentials and access control), the
+        supervisor's liveliness subscriber, token and health publisher on it."""
+        spec = self.spec
+        bus = spec.router_bus()
+        if self.secure:
+            identities = [*self.names, *TOOL_IDENTITIES]
             bus = secured_router(bus, spec, identities, self._dictionary.path)
         try:
             self.session = open_session(bus)
@@ -211,8 +222,6 @@ class Supervisor:
             raise RuntimeError(
                 f"cannot open the router, bus.listen: {', '.join(spec.bus.listen)}: {exc}"
             ) from None
-        if self._dictionary is not None:
-            self._dictionary.router_opened()
         self._liveliness = self.session.liveliness().declare_subscriber(
             keys.services_alive(spec.name),
             zenoh.handlers.Callback(self._on_alive, lambda: None),
@@ -224,6 +233,22 @@ class Supervisor:
         self._health = Publisher(
             self.session, keys.service_health(spec.name, "supervisor"), ServiceHealth
         )
+
+    def _close_router_session(self) -> None:
+        if self.session is not None and not self.session.is_closed():
+            if self._liveliness is not None:
+                self._liveliness.undeclare()
+            self._token.undeclare()
+            self.session.close()
+
+    def restart_router(self, down_s: float = 1.0) -> None:
+        """Close the router and open it again ``down_s`` later on the same endpoints, with the
+        same credentials (a router restart: every link drops; the services, zenoh clients,
+        reconnect by themselves and recover what they missed from the publishers' caches)."""
+        with self._router_lock:
+            self._close_router_session()
+            time.sleep(down_s)
+            self._open_router_session()
 
     def _close_security(self) -> None:
         if self._dictionary is not None:
@@ -443,11 +468,8 @@ class Supervisor:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=self.stop_timeout_s + 30.0)
-        if self.session is not None and not self.session.is_closed():
-            if self._liveliness is not None:
-                self._liveliness.undeclare()
-            self._token.undeclare()
-            self.session.close()
+        with self._router_lock:
+            self._close_router_session()
         self._close_security()
         self._lock_file.release()
         return self.codes

@@ -37,7 +37,7 @@ from schemas.messages import (
     RtdSkipped,
     ServiceHealth,
 )
-from services.bus import HistoryFeed, free_port, open_session
+from services.bus import REJECT_REASONS, HistoryFeed, free_port, open_session
 from services.common import format_alert
 
 log = logging.getLogger(__name__)
@@ -282,6 +282,33 @@ def prediction_error(measured: dict[float, float], predicted: dict[float, float]
     }
 
 
+#: health counters that say an input or a computation did not give its output, or gave it late
+FAILURE_COUNTERS = (
+    *REJECT_REASONS,
+    "handler_errors",
+    "window_errors",
+    "fit_failed",
+    "pulses_skipped_disturbance",
+    "adopted_late",
+    "adopted_late_max_ms",
+    "adoption_bypassed",
+    "degraded_releases",
+)
+
+
+def failures(health: dict[str, dict]) -> list[str]:
+    """One line per service whose health counts a failure, a skip or a late adoption
+    (:data:`FAILURE_COUNTERS`), with its last error."""
+    lines = []
+    for name, h in sorted(health.items()):
+        c = h.get("counters", {})
+        found = [f"{k}={c[k]}" for k in FAILURE_COUNTERS if c.get(k)]
+        if found:
+            err = f" (last error: {h['last_error']})" if h.get("last_error") else ""
+            lines.append(f"- {name}: {', '.join(found)}{err}")
+    return lines
+
+
 def report_markdown(report: dict[str, Any]) -> str:
     """``report.md``: the run in a few lines, the alerts, RTD estimates and findings."""
     t, err = report["timings_s"], report["prediction_error_pct_w_w"]
@@ -317,6 +344,8 @@ def report_markdown(report: dict[str, Any]) -> str:
         lines.append(
             f"\nRTD pulse at {r['pulse_t_s']} s without estimate ({r['reason']}): {r['detail']}"
         )
+    failed = failures(report["service_health"])
+    lines += ["", "Failures, skips and late adoptions:", *(failed or ["- none"])]
     if report["model_findings"]:
         lines += [
             "",

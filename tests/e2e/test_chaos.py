@@ -5,7 +5,7 @@ recording with two known feeder disturbances, under an artificial CPU hog (two b
 while faults are injected:
 
 - SIGKILL of the blender and of the diverter at plant times drawn at random (seeded, between
-  the two disturbances);
+  the two disturbances), and a restart of the router (down 1 s) after the second disturbance;
 - a flood of junk payloads, malformed JSON and one 1 MiB payload on a plant input key;
 - a clock jump after the replay: a flow going back in time on its key;
 - a forged divert command and alert from a client with the wrong identity (the plant's), and a
@@ -29,17 +29,19 @@ import subprocess
 import sys
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zenoh
+from twin_view import Seen, plant_replay, running, wait_until
 
 from schemas import keys
 from schemas.line import LineSpec
-from schemas.messages import DivertCommand, OosAlert, ServiceHealth
+from schemas.messages import DivertCommand, OosAlert
 from services.bus import free_port, open_session
-from services.recording import BusReplay, read_recording, write_messages
+from services.recording import read_recording, write_messages
 from services.supervisor import Supervisor
 from twin_core.online.blender import declared_kernel
 from twin_core.plant.messages import simulate_messages
@@ -54,56 +56,6 @@ DISTURBANCES = [
 ]
 SPEED = 60.0  # plant seconds per wall second: 30 s of replay
 HOG = "import time\nend = time.monotonic() + 300\nwhile time.monotonic() < end: pass\n"
-
-
-def running(pid: int) -> bool:
-    """Whether process ``pid`` exists and is not a zombie."""
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        return False
-    return state not in ("Z", "X")
-
-
-class Seen:
-    """Alerts, divert commands and the latest health of each service, as the operator sees."""
-
-    def __init__(self, sup: Supervisor) -> None:
-        self.got: dict[type, list] = {OosAlert: [], DivertCommand: []}
-        self.health: dict[str, ServiceHealth] = {}
-        self.session = open_session(sup.client_config("operator"))
-        line = sup.spec.name
-        self.subs = [
-            self.session.declare_subscriber(keys.oos_alert(line), self._on(OosAlert)),
-            self.session.declare_subscriber(keys.divert_command(line), self._on(DivertCommand)),
-            self.session.declare_subscriber(keys.services_health(line), self._on(ServiceHealth)),
-        ]
-
-    def _on(self, model):
-        def cb(sample: zenoh.Sample) -> None:
-            msg = model.model_validate_json(sample.payload.to_bytes())
-            if model is ServiceHealth:
-                self.health[msg.service] = msg
-            else:
-                self.got[model].append(msg)
-
-        return zenoh.handlers.Callback(cb, lambda: None)
-
-    def plant_time(self, service: str) -> float:
-        h = self.health.get(service)
-        return h.t if h is not None else -1.0
-
-    def close(self) -> None:
-        for s in self.subs:
-            s.undeclare()
-        self.session.close()
-
-
-def wait_until(pred, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end and not pred():
-        time.sleep(0.05)
-    return pred()
 
 
 def forge(sup: Supervisor) -> dict[str, str]:
@@ -158,6 +110,15 @@ def inject_junk(plant: zenoh.Session, line: str) -> int:
     return len(payloads)
 
 
+def reconnected(seen: Seen, services: list[str], since: float | None) -> bool:
+    """Whether every service reported its health more than a second after ``since`` (wall
+    time of the router's restart; None: not restarted)."""
+    if since is None:
+        return True
+    h = seen.health
+    return all(s in h and h[s].wall_time_unix_s > since + 1.0 for s in services)
+
+
 def jump_clock(plant: zenoh.Session, line: str) -> None:
     """A valid flow on the api key at a plant time long past (a PLC clock reset)."""
     back = (
@@ -183,6 +144,7 @@ def chaos(tmp_path_factory):
     rec = read_recording(tmp / "disturbed.mcap")
     rng = random.Random(16)
     kill_at = {"blender": rng.uniform(500.0, 800.0), "oos": rng.uniform(800.0, 1100.0)}
+    kill_at["router"] = rng.uniform(1300.0, 1600.0)  # a restart of the router, 1 s down
     out: dict = {"spec": spec, "kill_at": kill_at, "killed": {}}
     hogs = [subprocess.Popen([sys.executable, "-c", HOG]) for _ in range(2)]
     t0 = time.monotonic()
@@ -196,35 +158,31 @@ def chaos(tmp_path_factory):
         def killer() -> None:
             for name, t in sorted(kill_at.items(), key=lambda x: x[1]):
                 if wait_until(lambda t=t: seen.plant_time("oos") >= t, 120):
+                    if name == "router":
+                        sup.restart_router(down_s=1.0)
+                        out["router_back"] = time.time()
+                        out["killed"][name] = 0
+                        continue
                     pid = sup.pids()[name]
                     subprocess.run(["kill", "-KILL", str(pid)], check=False)
                     out["killed"][name] = pid
 
-        with BusReplay(
-            rec,
-            sup.client_config("plant"),
-            spec=spec,
-            settle_s=0.5,
-            service_name="plant",
-            install_signal_handlers=False,
-        ) as rp:
+        with plant_replay(rec, sup) as rp:
             th = threading.Thread(target=killer, daemon=True)
             th.start()
             out["injected"] = inject_junk(rp.svc.session, spec.name)
             rp.replay(speed=SPEED)
             th.join(120)
+            # a plain put is not cached: send the jump once the plant and every service are
+            # connected again (the diverter has seen the end of the replay, each service has
+            # reported its health through the restarted router)
+            wait_until(lambda: seen.plant_time("oos") >= rec.messages[-1].t, 120)
+            wait_until(lambda: reconnected(seen, spec.services, out.get("router_back")), 120)
             jump_clock(rp.svc.session, spec.name)
             assert wait_until(lambda: len(seen.got[OosAlert]) >= 2, 120), seen.got
             time.sleep(2.0)  # anything duplicated would arrive now
         with pytest.raises(RuntimeError, match="already seen plant time") as second:
-            with BusReplay(
-                rec,
-                sup.client_config("plant"),
-                spec=spec,
-                settle_s=0.5,
-                service_name="plant",
-                install_signal_handlers=False,
-            ):
+            with plant_replay(rec, sup):
                 pass
         out["second_session"] = str(second.value)
         out["health"] = dict(seen.health)
@@ -241,6 +199,7 @@ def chaos(tmp_path_factory):
     out["alerts"] = list(seen.got[OosAlert])
     out["diverts"] = list(seen.got[DivertCommand])
     out["recorded"] = read_recording(sup.run_dir / "run.mcap")
+    out["source"] = rec
     return out
 
 
@@ -255,7 +214,7 @@ def expected_windows(spec: LineSpec) -> list[tuple[float, float]]:
 
 def test_every_expected_alert_exactly_once_under_load_and_kills(chaos):
     spec = chaos["spec"]
-    assert set(chaos["killed"]) == {"blender", "oos"}, chaos["killed"]
+    assert set(chaos["killed"]) == {"blender", "oos", "router"}, chaos["killed"]
     assert chaos["restarts"]["blender"] >= 1 and chaos["restarts"]["oos"] >= 1
     alerts = sorted(chaos["alerts"], key=lambda a: a.t_start_s)
     assert [a.alert_id for a in alerts] == sorted({a.alert_id for a in alerts})
@@ -288,8 +247,14 @@ def test_no_message_silently_dropped(chaos):
 
 
 def test_recording_complete_and_no_orphan(chaos):
+    """The recording holds every plant message of the replay (those sent while the router was
+    down included: recovered from the plant's cache), the clock jump once more on its key."""
     rec = chaos["recorded"]
     assert rec.complete, rec.loss_report()
+    src = Counter(m.key for m in chaos["source"].messages)
+    got = Counter(m.key for m in rec.messages)
+    src[keys.feeder_flow("line1", "api")] += 1
+    assert {k: got[k] for k in src} == dict(src)
     keys_seen = {m.key for m in rec.messages}
     assert keys.oos_alert("line1") in keys_seen and keys.divert_command("line1") in keys_seen
     assert not any(running(p) for p in chaos["pids"])

@@ -14,6 +14,7 @@ from schemas.bus_config import AccessControl, BusConfig, Tls
 from schemas.export import all_models, export_json_schemas
 from schemas.messages import (
     MESSAGE_MODELS,
+    AdoptionProgress,
     DemJobProgress,
     DemJobRequest,
     DemJobResult,
@@ -65,6 +66,7 @@ GOOD = {
     RtdSkipped: dict(
         t=3.5, seq=0, pulse_t_s=900.0, reason="fit_failed", detail="profile area must be > 0"
     ),
+    AdoptionProgress: dict(t=960.0, seq=3, complete_to_s=1020.0),
     OosAlert: dict(
         t=4.0,
         seq=5,
@@ -135,6 +137,9 @@ BAD += [
     (Event, "duration_s", -1.0),
     (RtdEstimate, "mean_residence_time_s", -5.0),
     (RtdEstimate, "model", ""),
+    (RtdEstimate, "applies_from_s", -1.0),
+    (AdoptionProgress, "complete_to_s", -1.0),
+    (AdoptionProgress, "complete_to_s", float("nan")),
     (OosAlert, "alert_id", ""),
     (OosAlert, "limit_pct_w_w", -0.5),
     (OosAlert, "peak_deviation_pct_w_w", float("nan")),

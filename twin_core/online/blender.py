@@ -18,6 +18,12 @@ unit-stage ones (a component's mass partly lost in the blender).
 Effects that grow with time from the start of their window (drifts) and sensor effects (the
 probe, not the outlet) are not adopted.
 
+Adoption is keyed to plant time: an RTD estimate or a model's effects are scheduled from the
+plant time they apply from (:meth:`BlenderKernel.schedule`, the message's ``applies_from_s``) and
+applied before the first tick at or after it (:meth:`BlenderKernel.apply_due`), whenever they
+arrived; one that arrives after that tick was predicted is applied from the next tick, and the
+caller is told by how much it was late.
+
 A tracer event may arrive after the flows of its tick (another route, another publisher): the
 tick's convolution input is then corrected in place. E(t) of a blender with a plug-flow delay is
 exactly zero for its first samples, so the outlet values already given did not depend on that
@@ -27,8 +33,10 @@ delay late.
 
 from __future__ import annotations
 
+import heapq
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -86,6 +94,35 @@ class BlenderKernel:
         #: adopted effects (rtd and feeder stage)
         self.effects: list[Effect] = []
         self.e = declared_kernel(spec) if e is None else np.asarray(e, float)
+        #: scheduled updates not yet applied: (applies from, order, kind, payload)
+        self._pending: list[tuple[float, int, str, Any]] = []
+        self._n_scheduled = 0
+        #: the effects (dict form) of the latest update scheduled
+        self.latest_effects: list[dict] = []
+
+    def schedule(self, t_from: float, kind: str, payload: Any) -> None:
+        """An update to apply from plant time ``t_from`` on: ``kind`` ``estimate`` (payload
+        ``(model, params)``, :meth:`adopt_estimate`) or ``effects`` (a list of effects,
+        :meth:`adopt_effects`); equal times apply in scheduling order."""
+        if kind not in ("estimate", "effects"):
+            raise ValueError(f"kind must be 'estimate' or 'effects', got {kind!r}")
+        if kind == "effects":
+            self.latest_effects = [dict(e) for e in payload]
+        heapq.heappush(self._pending, (float(t_from), self._n_scheduled, kind, payload))
+        self._n_scheduled += 1
+
+    def apply_due(self, t: float) -> bool:
+        """Apply the scheduled updates due at plant time ``t`` (``t_from <= t``), in order;
+        returns whether E(t) or the effects changed."""
+        changed = False
+        while self._pending and self._pending[0][0] <= t:
+            _, _, kind, payload = heapq.heappop(self._pending)
+            if kind == "estimate":
+                self.adopt_estimate(*payload)
+            else:
+                self.adopt_effects(payload)
+            changed = True
+        return changed
 
     def adoptable(self, effect: Effect) -> bool:
         """Can this effect change the prediction of the outlet (see the module docstring)?"""
@@ -214,6 +251,16 @@ class BlenderPredictor:
         self._update_convolvers()
         return left
 
+    def schedule(self, t_from: float, kind: str, payload: Any) -> float:
+        """An update (:meth:`BlenderKernel.schedule`) applied from the first tick at or after
+        plant time ``t_from``; returns how late it came, s of plant time (0: in time; else the
+        tick it is applied from minus ``t_from``: that tick is the one after the last
+        predicted)."""
+        self.kernel.schedule(t_from, kind, payload)
+        if self._last_tick is None or t_from > self._last_tick:
+            return 0.0
+        return self._last_tick + self.spec.dt_s - t_from
+
     def _delivered(self, feeder: str, t: float, s: FeederSample) -> float:
         """The delivered flow under the adopted feeder-stage effects (causal: the effect's
         ``apply_flow`` on the feeder's recent reported flows, last value)."""
@@ -280,6 +327,8 @@ class BlenderPredictor:
         return out
 
     def _predict(self, tick: InletTick) -> dict[str, float] | None:
+        if self.kernel.apply_due(tick.t):
+            self._update_convolvers()
         mass = {c: 0.0 for c in self.comp_names}
         for f, s in tick.feeders.items():
             mass[self.components[f]] += self._delivered(f, tick.t, s)

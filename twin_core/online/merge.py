@@ -71,9 +71,10 @@ class WatermarkMerger:
             out.append((s, t, item))
         return out
 
-    def release_all(self) -> list[tuple[str, float, Any]]:
-        """Release every buffered item (in order)."""
-        return self._release(math.inf)
+    def release_all(self, until: float = math.inf) -> list[tuple[str, float, Any]]:
+        """Release every buffered item up to time ``until`` (default: all), in order, whatever
+        the streams' watermarks (end of stream, or a stream known to be silent)."""
+        return self._release(until)
 
     def __len__(self) -> int:
         return len(self._heap)

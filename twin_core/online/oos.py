@@ -103,6 +103,12 @@ class OosCore:
         }
         self.use_predicted = "blender" in spec.services
         streams = ["inlet", "measured"] + (["predicted"] if self.use_predicted else [])
+        #: producers of model updates whose progress holds the decisions back (plant-time
+        #: adoption: ``schemas.messages.AdoptionProgress``)
+        self.adoption_sources = spec.adoption_sources()
+        streams += self.adoption_sources
+        #: merge time of the last item decided on (None before any)
+        self.t_done: float | None = None
         self.merger = WatermarkMerger(streams)
         self.m_nom = sum(f.setpoint_kg_h for f in spec.feeders)
         self.end_t: float | None = None
@@ -142,16 +148,27 @@ class OosCore:
         self.kernel.adopt_estimate(model, params)
         self._refresh_funnel()
 
+    def schedule(self, t_from: float, kind: str, payload: Any) -> float:
+        """A model update (``BlenderKernel.schedule``) followed from merge time ``t_from`` on,
+        as the blender does; returns how late it came, s of plant time (0: in time; else the
+        decisions already made at or after ``t_from``)."""
+        self.kernel.schedule(t_from, kind, payload)
+        if self.t_done is None or t_from > self.t_done:
+            return 0.0
+        return self.t_done - t_from
+
+    def progress(self, source: str, complete_to_s: float) -> list[DiverterOutput]:
+        """Every update of ``source`` applying up to ``complete_to_s`` is scheduled: the
+        decisions up to there may be made."""
+        return self._process(self.merger.advance(source, complete_to_s))
+
     def finding(self, finding: Mapping[str, Any]) -> list[DiverterOutput]:
-        """A close-loop finding (``schemas.closeloop.ModelFinding`` in dict form): its model's
-        effects are followed like the blender's (:meth:`adopt_effects`), and when the product
-        is at risk the product-side reading's outlet is checked against the specification of
-        the measured component over the finding's window
-        (``OosDecider.product_risk``)."""
+        """A close-loop finding (``schemas.closeloop.ModelFinding`` in dict form) when the
+        product is at risk: the product-side reading's outlet is checked against the
+        specification of the measured component over the finding's window
+        (``OosDecider.product_risk``). Its model's effects are followed through
+        :meth:`schedule`."""
         out: list[DiverterOutput] = []
-        new = [dict(e) for e in finding.get("model_effects", [])]
-        if not self.kernel.same_effects(new):
-            self.adopt_effects(new)
         reading = finding.get("product_reading")
         if not finding.get("product_at_risk") or not reading:
             return out
@@ -204,6 +221,9 @@ class OosCore:
         if released:
             self.last_release = self.clock()
         for stream, t, item in released:
+            if self.kernel.apply_due(t):
+                self._refresh_funnel()
+            self.t_done = t
             if stream == "inlet":
                 t_in, xs = item
                 for comp, x in xs.items():
@@ -307,10 +327,11 @@ class OosCore:
         """Whether anything waits in the merge or the inlet hold."""
         return bool(len(self.merger) or self.inlet.pending)
 
-    def release_all(self) -> list[DiverterOutput]:
-        """Decide on what is there (a stalled stream): the held inlet ticks, then the merge."""
+    def release_all(self, until: float = math.inf) -> list[DiverterOutput]:
+        """Decide on what is there (a stalled stream): the held inlet ticks, then the merge up
+        to merge time ``until`` (the model updates known up to there: default all)."""
         out = self._merge_inlet(self.inlet.release_all())
-        return out + self._process(self.merger.release_all())
+        return out + self._process(self.merger.release_all(until))
 
     def end_of_stream(self) -> list[DiverterOutput]:
         """Close everything: release what the merge holds and close open episodes."""

@@ -1,0 +1,85 @@
+"""What the end-to-end tests see of a running twin: its alerts, divert commands and the latest
+health of each service (as the operator sees them), and process checks."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import zenoh
+
+from schemas import keys
+from schemas.messages import DivertCommand, OosAlert, ServiceHealth
+from services.bus import HistoryFeed, open_session
+from services.recording import BusReplay, Recording
+from services.supervisor import Supervisor
+
+
+def running(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state not in ("Z", "X")
+
+
+class Seen:
+    """Alerts, divert commands and the latest health of each service, as the operator sees."""
+
+    def __init__(self, sup: Supervisor) -> None:
+        self.got: dict[type, list] = {OosAlert: [], DivertCommand: []}
+        self.health: dict[str, ServiceHealth] = {}
+        self.session = open_session(sup.client_config("operator"))
+        line = sup.spec.name
+        # alerts and divert commands through advanced subscribers: one published while the
+        # router restarts is recovered from the diverter's cache, as a twin tool gets it
+        self.feeds = [
+            HistoryFeed(self.session, keys.oos_alert(line), self._feed(OosAlert)),
+            HistoryFeed(self.session, keys.divert_command(line), self._feed(DivertCommand)),
+        ]
+        self.subs = [
+            self.session.declare_subscriber(
+                keys.services_health(line),
+                zenoh.handlers.Callback(self._on_health, lambda: None),
+            ),
+        ]
+
+    def _feed(self, model):
+        def sink(key: str, payload: bytes) -> None:
+            self.got[model].append(model.model_validate_json(payload))
+
+        return sink
+
+    def _on_health(self, sample: zenoh.Sample) -> None:
+        msg = ServiceHealth.model_validate_json(sample.payload.to_bytes())
+        self.health[msg.service] = msg
+
+    def plant_time(self, service: str) -> float:
+        h = self.health.get(service)
+        return h.t if h is not None else -1.0
+
+    def close(self) -> None:
+        for s in [*self.feeds, *self.subs]:
+            s.undeclare()
+        self.session.close()
+
+
+def wait_until(pred, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and not pred():
+        time.sleep(0.05)
+    return pred()
+
+
+def plant_replay(rec: Recording, sup: Supervisor) -> BusReplay:
+    """The virtual plant replaying ``rec`` into the supervised twin, as the ``plant`` identity
+    (a context manager: ``with plant_replay(rec, sup) as rp: rp.replay(speed=...)``)."""
+    return BusReplay(
+        rec,
+        sup.client_config("plant"),
+        spec=sup.spec,
+        settle_s=0.5,
+        service_name="plant",
+        install_signal_handlers=False,
+    )
