@@ -273,7 +273,10 @@ def choose_lambda(
     blocks = _block_ids(ctx.t, ctx.train, opt.cv_block_s)
     ids = [b for b in np.unique(blocks) if b >= 0]
     per_block = {b: _Sums.of(x[blocks == b], r[blocks == b], w[blocks == b]) for b in ids}
-    total = reduce(operator.add, per_block.values())
+    total = reduce(operator.add, per_block.values()) if ids else _Sums.of(x[:0], r[:0], w[:0])
+    if len(ids) < 2 or not total.sw > 0:
+        # a window shorter than two CV blocks cannot choose lambda: no correction
+        return math.inf, {}, total
     pen = penalty(x.shape[1])
     g_all, _ = total.centred()
     scale = float(np.trace(g_all) / np.trace(pen))
@@ -284,6 +287,8 @@ def choose_lambda(
         held_ids = [b for b in ids if folds[b] == f]
         sel = np.isin(blocks, held_ids)
         fit = total - reduce(operator.add, (per_block[b] for b in held_ids))
+        if not fit.sw > 0:  # every weighted training sample is in this fold
+            continue
         g, q = fit.centred()
         for lam in grid:
             u = solve_kernel(g, q, design.e_knots, lam, pen, design.mass)
