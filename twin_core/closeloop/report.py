@@ -5,7 +5,8 @@ and an honest account of what is and is not explained.
 
 1. data quality first (``twin_core.closeloop.quality``): flagged samples are left out;
 2. identification (``twin_core.closeloop.identify``): effects, their equivalent explanations,
-   the honest status; a record whose flagged faults are all that is wrong (no effect claimed,
+   the honest status (a record left unexplained by a candidate the forward split cannot test,
+   :func:`untestable_by_tail`, is identified again on alternating blocks); a record whose flagged faults are all that is wrong (no effect claimed,
    the rest the noise) gets status ``data_quality``, never a process effect;
 3. product-safe attribution (``twin_core.closeloop.attribution``) and, when the product is at
    risk, the measurement that would separate the readings (``twin_core.closeloop.discriminate``);
@@ -23,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -417,6 +418,31 @@ def find_library_structure(
     return [f.to_dict() for f in found]
 
 
+#: share of a candidate's change of prediction (innovation energy) below which the held-out
+#: window cannot test it
+UNTESTABLE_SHARE = 0.05
+
+
+def untestable_by_tail(ident: Identification) -> bool:
+    """Whether a forward (``tail``) split left the record unexplained because its best
+    candidate acts where the held-out window cannot see it: nothing claimed, and less than
+    ``UNTESTABLE_SHARE`` of the best-BIC candidate's change of prediction (squared, on the usable
+    samples) falls in the held-out window -- a start-up transient such as a hold-up filling
+    over the first minutes. Then the record is identified again on alternating blocks, whose
+    held-out samples interleave with the training ones (``twin_core.closeloop.data.make_split``)."""
+    if ident.accepted or ident.status != "unexplained" or ident.options.split != "tail":
+        return False
+    fits = [f for f in (ident.steps[0] if ident.steps else []) if f.converged]
+    if not fits:
+        return False
+    best = min(fits, key=lambda f: f.delta_bic)
+    if not best.delta_bic < 0:
+        return False
+    change = (best.pred - ident.base.pred) ** 2
+    total = float(np.sum(change[ident.usable]))
+    return total > 0 and float(np.sum(change[ident.heldout])) < UNTESTABLE_SHARE * total
+
+
 def close_loop(
     run_data: RunData,
     declared_model: LineModel,
@@ -439,6 +465,10 @@ def close_loop(
     quality = check_data_quality(run_data, declared_model, quality_options)
     t1 = clock()
     ident = identify(declared_model, run_data, options, exclude=quality.exclude)
+    if untestable_by_tail(ident):
+        ident = identify(
+            declared_model, run_data, replace(ident.options, split="blocks"), quality.exclude
+        )
     t2 = clock()
     attribution = attribute(ident)
     design = None
