@@ -229,3 +229,23 @@ def test_a_feeder_dropout_does_not_cut_the_record_and_is_a_gap_not_stuck():
     q = check_data_quality(data, LineModel(cfg))
     assert [(f.kind, f.series) for f in q.flags] == [("gap", "excipient:flow")]
     assert q.flags[0].n_samples == 240
+
+
+def test_a_stuck_screw_speed_is_flagged_but_its_hold_after_a_refill_is_not():
+    """The API screw speed frozen for 180 s (``twin_core.plant.faults`` on the bus messages of
+    the open-world scenario, where the feeders refill with the load cell frozen): flagged
+    ``stuck`` on ``api:screw_speed``; the excipient's speed, held from each refill until its
+    feeder is back in gravimetric mode (10-20 s after the refill flag drops), is not (before
+    the refill rule: two false ``stuck`` flags per record)."""
+    from twin_core.closeloop.record import LineRecord
+    from twin_core.plant.openworld_cases import FAULT_CASES, Case, Setting, run_case
+
+    cr = run_case(Case("fault", "api_screw_stuck", faults=FAULT_CASES["api_screw_stuck"]),
+                  Setting(False, 1.0), 400000)  # fmt: skip
+    cfg = cr.run.config
+    s = cfg.sensor
+    data = LineRecord.from_messages(
+        cr.messages, cfg.components, s.sample_period_s, s.component
+    ).run_data("screw")
+    q = check_data_quality(data, LineModel(cfg))
+    assert [(f.kind, f.series, f.n_samples) for f in q.flags] == [("stuck", "api:screw_speed", 180)]
