@@ -74,34 +74,34 @@ class DataQualityFlag(StrictModel):
     n_samples: int = Field(ge=0)
 
 
-class Equivalent(StrictModel):
-    """An explanation the data cannot tell from the effect it is listed with: whole-record BIC
-    within the ambiguity margin, held-out error lowered by the margin too."""
+class _Explanation(StrictModel):
+    """An alternative explanation: the effect (label, name, target, side, parameters) and its
+    held-out scores."""
 
     label: str
     name: str
     target: str | None = None
     side: Side
     params: dict[str, Finite]
-    delta_bic: Finite = Field(description="its whole-record BIC minus the effect's")
     heldout_rel_improvement: Finite | None = None
     p_value: Finite | None = Field(None, ge=0.0, le=1.0)
 
 
-class PossibleExplanation(StrictModel):
+class Equivalent(_Explanation):
+    """An explanation the data cannot tell from the effect it is listed with: whole-record BIC
+    within the ambiguity margin (the cross-side margin for the other side of the probe),
+    held-out error lowered by the margin too."""
+
+    delta_bic: Finite = Field(description="its whole-record BIC minus the effect's")
+
+
+class PossibleExplanation(_Explanation):
     """Without a claim, a candidate that passes the statistical part of the claim test on what
     is left (training BIC below the declared model's, held-out likelihood-ratio p-value below
     the Bonferroni level) but not the practical margin: supported by the data, not claimed."""
 
-    label: str
-    name: str
-    target: str | None = None
-    side: Side
-    params: dict[str, Finite]
     delta_bic: Finite = Field(description="its training BIC minus the declared model's")
-    heldout_rel_improvement: Finite | None = None
     lr_z: Finite | None = None
-    p_value: Finite | None = Field(None, ge=0.0, le=1.0)
 
 
 class MeasurementOption(StrictModel):

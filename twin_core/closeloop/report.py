@@ -104,48 +104,35 @@ def _effect_entries(fr: FitResult) -> list[dict[str, Any]]:
     return out
 
 
+def _explanation_entry(f: FitResult, delta_bic: float) -> dict[str, Any]:
+    """An alternative explanation's last effect with its scores (``schemas.closeloop.
+    Equivalent`` / ``PossibleExplanation``)."""
+    e = f.effects[-1]
+    return {
+        "label": f.labels[-1],
+        "name": e.name,
+        "target": e.target,
+        "side": effect_side(f.labels[-1]),
+        "params": dict(e.values),
+        "delta_bic": delta_bic,
+        "heldout_rel_improvement": f.rel_improvement,
+        "p_value": f.p_value,
+    }
+
+
 def _equivalent_entries(step: FitResult) -> list[dict[str, Any]]:
-    """The equivalents of an accepted step with their scores (``schemas.closeloop.Equivalent``)."""
-    out = []
-    for f in step.equivalents:
-        e = f.effects[-1]
-        out.append(
-            {
-                "label": f.labels[-1],
-                "name": e.name,
-                "target": e.target,
-                "side": effect_side(f.labels[-1]),
-                "params": dict(e.values),
-                "delta_bic": f.bic_all - step.bic_all,
-                "heldout_rel_improvement": f.rel_improvement,
-                "p_value": f.p_value,
-            }
-        )
-    return out
+    """The equivalents of an accepted step with their scores (``schemas.closeloop.Equivalent``):
+    ``delta_bic`` against the step's whole-record BIC."""
+    return [_explanation_entry(f, f.bic_all - step.bic_all) for f in step.equivalents]
 
 
 def _possible_entries(attribution: Attribution | None) -> list[dict[str, Any]]:
     """The possible explanations of an unexplained record (``schemas.closeloop.
-    PossibleExplanation``; ``twin_core.closeloop.attribution``)."""
+    PossibleExplanation``; ``twin_core.closeloop.attribution``): ``delta_bic`` against the
+    declared model's training BIC, and the held-out LR z."""
     if attribution is None:
         return []
-    out = []
-    for f in attribution.possible:
-        e = f.effects[-1]
-        out.append(
-            {
-                "label": f.labels[-1],
-                "name": e.name,
-                "target": e.target,
-                "side": effect_side(f.labels[-1]),
-                "params": dict(e.values),
-                "delta_bic": f.delta_bic,
-                "heldout_rel_improvement": f.rel_improvement,
-                "lr_z": f.lr_z,
-                "p_value": f.p_value,
-            }
-        )
-    return out
+    return [{**_explanation_entry(f, f.delta_bic), "lr_z": f.lr_z} for f in attribution.possible]
 
 
 def _candidate_row(fr: FitResult) -> dict[str, Any]:
