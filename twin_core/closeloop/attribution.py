@@ -55,13 +55,15 @@ class Attribution:
         return list(self.reading.labels) if self.reading is not None else []
 
 
+def _best_on(fits: list[FitResult], side: str) -> FitResult | None:
+    """The first of ``fits`` (sorted best first) whose last effect is on ``side``."""
+    return next((f for f in fits if effect_side(f.labels[-1]) == side), None)
+
+
 def _best_equivalent(step: FitResult, side: str) -> FitResult | None:
     """The best-scoring equivalent of an accepted step on ``side`` (equivalents are sorted by
     whole-record BIC)."""
-    for eq in step.equivalents:
-        if effect_side(eq.labels[-1]) == side:
-            return eq
-    return None
+    return _best_on(step.equivalents, side)
 
 
 def side_reading(ident: Identification, side: str) -> FitResult:
@@ -100,10 +102,6 @@ def possible_explanations(ident: Identification) -> list[FitResult]:
     best = min(f.bic_all for f in ok)
     near = [f for f in ok if f.bic_all - best <= ident.options.ambiguity_bic]
     return sorted(near, key=lambda f: f.bic_all)
-
-
-def _best_on(fits: list[FitResult], side: str) -> FitResult | None:
-    return next((f for f in fits if effect_side(f.labels[-1]) == side), None)
 
 
 def attribute(ident: Identification) -> Attribution:

@@ -214,12 +214,7 @@ def censored_stretches(
     near = clipped.copy()
     for level in levels:
         near |= np.abs(med - level) <= 3.0 * sigma
-    hot = near.copy()
-    runs = _runs(near)
-    for (_, b0), (a1, _) in zip(runs[:-1], runs[1:]):
-        if a1 - b0 < window:
-            hot[b0:a1] = True
-    return [(a, b) for a, b in _runs(hot) if clipped[a:b].any()]
+    return [(a, b) for a, b in _merge_runs(_runs(near), window) if clipped[a:b].any()]
 
 
 def burst_threshold(window: int, rate: float, n: int, false_alarm: float) -> int:
