@@ -32,10 +32,9 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
 import pytest
 import zenoh
-from twin_view import Seen, plant_replay, running, wait_until
+from twin_view import Seen, expected_windows, plant_replay, running, wait_until
 
 from schemas import keys
 from schemas.line import LineSpec
@@ -43,9 +42,7 @@ from schemas.messages import DivertCommand, OosAlert
 from services.bus import free_port, open_session
 from services.recording import read_recording, write_messages
 from services.supervisor import Supervisor
-from twin_core.online.blender import declared_kernel
 from twin_core.plant.messages import simulate_messages
-from twin_core.quality.lots import diversion_window
 
 pytestmark = pytest.mark.e2e
 
@@ -203,15 +200,6 @@ def chaos(tmp_path_factory):
     return out
 
 
-def expected_windows(spec: LineSpec) -> list[tuple[float, float]]:
-    e = declared_kernel(spec)
-    tk = np.arange(e.size) * spec.dt_s
-    return [
-        diversion_window(d["t_s"], d["t_s"] + d["duration_s"] - spec.dt_s, tk, e)
-        for d in DISTURBANCES
-    ]
-
-
 def test_every_expected_alert_exactly_once_under_load_and_kills(chaos):
     spec = chaos["spec"]
     assert set(chaos["killed"]) == {"blender", "oos", "router"}, chaos["killed"]
@@ -219,7 +207,7 @@ def test_every_expected_alert_exactly_once_under_load_and_kills(chaos):
     alerts = sorted(chaos["alerts"], key=lambda a: a.t_start_s)
     assert [a.alert_id for a in alerts] == sorted({a.alert_id for a in alerts})
     assert len(alerts) == 2, [a.alert_id for a in alerts]
-    for a, (lo, hi) in zip(alerts, expected_windows(spec)):
+    for a, (lo, hi) in zip(alerts, expected_windows(spec, DISTURBANCES)):
         assert abs(a.t_start_s - lo) <= spec.dt_s and abs(a.t_end_s - hi) <= spec.dt_s
     ids = sorted(d.command_id for d in chaos["diverts"])
     assert ids == sorted(f"{a.alert_id}.{k}" for a in alerts for k in ("open", "final"))

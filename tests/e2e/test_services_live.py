@@ -20,19 +20,17 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import zenoh
+from twin_view import expected_windows, plant_replay, wait_until
 
 from schemas import keys
 from schemas.line import LineSpec
 from schemas.messages import DivertCommand, OosAlert, ServiceHealth
 from services.bus import free_port, open_session
-from services.recording import BusReplay, read_recording, write_messages
+from services.recording import read_recording, write_messages
 from services.supervisor import Supervisor
-from twin_core.online.blender import declared_kernel
 from twin_core.plant.messages import simulate_messages
-from twin_core.quality.lots import diversion_window
 
 CONFIG = Path(__file__).resolve().parents[2] / "services" / "configs" / "line1.yaml"
 DISTURBANCES = [
@@ -88,28 +86,6 @@ class Collector:
         self.session.close()
 
 
-def plant_replay(sup: Supervisor, rec) -> BusReplay:
-    """The virtual plant replaying ``rec`` into the twin of ``sup`` (as ``twin replay
-    --config``, with the run's plant credentials)."""
-    return BusReplay(
-        rec,
-        sup.client_config("plant"),
-        spec=sup.spec,
-        settle_s=0.5,
-        service_name="plant",
-        install_signal_handlers=False,
-    )
-
-
-def wait_until(pred, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return pred()
-
-
 @pytest.fixture(scope="module")
 def run_a(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("live_a")
@@ -124,7 +100,7 @@ def run_a(tmp_path_factory):
     try:
         assert sup.wait_ready(120), f"services not ready: alive {sup.alive}"
         col = Collector(sup)
-        with plant_replay(sup, rec) as rp:
+        with plant_replay(rec, sup) as rp:
             killer_done = threading.Event()
 
             def kill_oos() -> None:
@@ -164,20 +140,11 @@ def run_a(tmp_path_factory):
     return out
 
 
-def expected_windows(spec: LineSpec) -> list[tuple[float, float]]:
-    e = declared_kernel(spec)
-    tk = np.arange(e.size) * spec.dt_s
-    return [
-        diversion_window(d["t_s"], d["t_s"] + d["duration_s"] - spec.dt_s, tk, e)
-        for d in DISTURBANCES
-    ]
-
-
 def test_known_disturbances_give_exactly_the_expected_alert_windows(run_a):
     spec = run_a["spec"]
     alerts = sorted(run_a["alerts"], key=lambda a: a.t_start_s)
     assert len(alerts) == 2, ([a.alert_id for a in alerts], run_a["health"]["oos"].counters)
-    for a, (lo, hi) in zip(alerts, expected_windows(spec)):
+    for a, (lo, hi) in zip(alerts, expected_windows(spec, DISTURBANCES)):
         assert abs(a.t_start_s - lo) <= spec.dt_s, (a.t_start_s, lo)
         assert abs(a.t_end_s - hi) <= spec.dt_s, (a.t_end_s, hi)
         assert a.component == "api" and abs(a.peak_deviation_pct_w_w) > a.limit_pct_w_w
@@ -237,7 +204,7 @@ def run_b(tmp_path_factory):
     try:
         assert sup.wait_ready(120)
         col = Collector(sup)
-        with plant_replay(sup, rec) as rp:
+        with plant_replay(rec, sup) as rp:
             out["n_sent"] = rp.replay(as_fast_as_possible=True).published
             assert wait_until(
                 lambda: "oos" in col.health and col.health["oos"].t >= rec.messages[-1].t - 1, 60

@@ -6,13 +6,17 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import numpy as np
 import zenoh
 
 from schemas import keys
+from schemas.line import LineSpec
 from schemas.messages import DivertCommand, OosAlert, ServiceHealth
 from services.bus import HistoryFeed, open_session
 from services.recording import BusReplay, Recording
 from services.supervisor import Supervisor
+from twin_core.online.blender import declared_kernel
+from twin_core.quality.lots import diversion_window
 
 
 def running(pid: int) -> bool:
@@ -83,3 +87,14 @@ def plant_replay(rec: Recording, sup: Supervisor) -> BusReplay:
         service_name="plant",
         install_signal_handlers=False,
     )
+
+
+def expected_windows(spec: LineSpec, disturbances: list[dict]) -> list[tuple[float, float]]:
+    """The outlet windows the declared blender gives each feeder disturbance (``t_s``,
+    ``duration_s``): the alert windows a correct diverter raises."""
+    e = declared_kernel(spec)
+    tk = np.arange(e.size) * spec.dt_s
+    return [
+        diversion_window(d["t_s"], d["t_s"] + d["duration_s"] - spec.dt_s, tk, e)
+        for d in disturbances
+    ]
