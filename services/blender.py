@@ -55,8 +55,10 @@ class BlenderService(Service):
 
     #: ticks before the last one marked that a restarted blender publishes again: a crash just
     #: after the mark can lose what was still in the process's send queue (the subscribers and
-    #: the recorder drop the ones they had as duplicates)
-    republish_ticks = 20
+    #: the recorder drop the ones they had as duplicates). Under a CPU hog at 200x the queue
+    #: held ~70 ticks when the blender was killed (20 lost 51 predictions); 300 ticks is 1.5 s
+    #: of wall time at 200x, a few hundred duplicates at a restart
+    republish_ticks = 300
 
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
         super().__init__("blender", spec=spec, **kwargs)
