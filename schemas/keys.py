@@ -105,6 +105,21 @@ def predicted_concentration(line: str, location: str = "outlet") -> str:
     return key(line, "blender", "predicted", location)
 
 
+def blender_drive(line: str, blender_id: str = "blender") -> str:
+    """The blade drive of a blender (``BlenderDrive``)."""
+    return key(line, "blender", "drive", blender_id)
+
+
+def blender_model_update(line: str, source: str) -> str:
+    """A new compartment model of the blender from ``source`` (``BlenderModelUpdate``)."""
+    return key(line, "blender", "model", source)
+
+
+def blender_model_in_use(line: str, location: str = "outlet") -> str:
+    """The model the blender predicts with (``BlenderModelInUse``)."""
+    return key(line, "blender", "model_in_use", location)
+
+
 def event(line: str, unit: str, id: str) -> str:
     return key(line, unit, "event", id)
 
@@ -192,6 +207,16 @@ def everything(line: str) -> str:
 def feeder_flows(line: str) -> str:
     """The flows of every feeder (``twin/<line>/feeder/*/flow``)."""
     return _wild(line, "feeder", "*", "flow")
+
+
+def blender_drives(line: str) -> str:
+    """Every blender drive of a line."""
+    return _wild(line, "blender", "*", "drive")
+
+
+def blender_model_updates(line: str) -> str:
+    """Every new blender model of a line."""
+    return _wild(line, "blender", "*", "model")
 
 
 def events(line: str) -> str:

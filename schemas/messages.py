@@ -12,6 +12,7 @@ from typing import Annotated, Literal
 from pydantic import Field, StringConstraints, model_validator
 
 from schemas.base import Finite, Fraction, Ident, Message, NonNegative, Positive, Text
+from schemas.blender_model import BlenderModel
 
 #: quality flag of a measurement: ``good``; ``suspect`` (e.g. flagged outlier, out of calibration
 #: range); ``bad`` (sensor fault: the value must not be used)
@@ -64,6 +65,58 @@ class PredictedConcentration(Message):
         if lo is not None and hi is not None and lo > hi:
             raise ValueError(f"lower_pct_w_w must be <= upper_pct_w_w, got {lo} > {hi}")
         return self
+
+
+class BlenderDrive(Message):
+    """Blade drive of a continuous blender, as the plant reports it. Key:
+    ``twin/<line>/blender/<blender_id>/drive``.
+
+    The blender and the diverter predict with the blender model of the reported blade speed
+    from ``t`` on (``twin_core.compartment.operating_point``).
+    """
+
+    SIGNAL = "drive"
+
+    blade_speed_rpm: NonNegative = Field(description="blade (impeller) speed, rev/min")
+
+
+class BlenderModelUpdate(Message):
+    """A compartment model of the blender section at one blade speed, e.g. built by the dem
+    service from a DEM run of the section. Key: ``twin/<line>/blender/<source>/model``.
+
+    The blender and the diverter add it to their table of models (replacing one at the same
+    blade speed) from plant time ``t`` on.
+    """
+
+    SIGNAL = "model"
+
+    model: BlenderModel = Field(description="the section model (rpm_basis: its blade speed)")
+    detail: Text = Field(default="", description="how it was made (scene, run, job id)")
+
+    @model_validator(mode="after")
+    def _has_rpm(self) -> BlenderModelUpdate:
+        if self.model.rpm_basis is None:
+            raise ValueError("model.rpm_basis must be given, got None")
+        return self
+
+
+class BlenderModelInUse(Message):
+    """The blender model the twin predicts with, announced when it starts and whenever the
+    operating point or the table of models changes. Key: ``twin/<line>/blender/outlet/model``.
+    """
+
+    SIGNAL = "model_in_use"
+
+    kind: Literal["rtd", "compartment"] = Field(description="RTD model or compartment model")
+    name: Text = Field(description="model name, or the compartment models it is built from")
+    reason: Literal["start", "blade_speed", "throughput", "new_model"] = Field(
+        description="what made the twin switch"
+    )
+    applies_from_s: NonNegative = Field(description="plant time the model applies from")
+    blade_speed_rpm: NonNegative | None = Field(default=None, description="operating point")
+    throughput_kg_h: NonNegative | None = Field(default=None, description="operating point")
+    mean_residence_time_s: NonNegative = Field(description="mean of the model's E(t), s")
+    rule: Text = Field(default="", description="how the model was obtained for this point")
 
 
 EventKind = Literal[
