@@ -93,15 +93,31 @@ class FeederLine(StrictModel):
         return FeederConfig(**{"name": self.id, "setpoint_kg_h": self.setpoint_kg_h, **self.liw})
 
 
+class HoldupConfig(StrictModel):
+    """The compartment blender's holdup at a basis point and how it follows the operating point
+    (``twin_core.compartment.operating_point``): M(r, Q) = kg x (kappa(rpm) / kappa(r)) x
+    (Q / throughput_kg_h)^beta, kappa the blades' conveying frequency from the DEM runs."""
+
+    kg: Positive = Field(description="flowing holdup of the whole blender at the basis, kg")
+    rpm: Positive = Field(description="blade speed of the basis, rev/min")
+    throughput_kg_h: Positive = Field(description="throughput of the basis, kg/h")
+    beta: Finite = Field(1.0, description="1: holdup proportional to throughput; 0: fixed")
+
+
 class BlenderModelConfig(StrictModel):
     """The blender as a linear system with impulse response E(t).
 
     ``kind: rtd``: the RTD model ``model`` of ``twin_core.rtd.models`` (one of
     :data:`RTD_MODELS`) with its parameters (SI); default: axial dispersion (open-open) with
     delay, seed Table 6.2 (untruncated 10 g pulse): tau_d = 11.92 s, tau = 16.37 s, Pe = 7.67
-    (mean residence time ~32.5 s). ``kind: compartment``: a compartment-network export
-    (``schemas.blender_model.BlenderModel`` JSON file) whose impulse response is used by the
-    live blender service. ``kernel_s``: length of E(t) kept for the streaming convolution;
+    (mean residence time ~32.5 s). ``kind: compartment``: compartment models of the blender's
+    periodic section (``schemas.blender_model.BlenderModel`` JSON: ``export_path`` a file or a
+    directory of them, one per blade speed; None: the shipped models built from the seed-size
+    DEM runs, ``twin_core/compartment/data``) at the operating point: ``blade_speed_rpm`` until
+    the plant reports one (``BlenderDrive``), the feeders' set points as throughput, ``holdup``
+    (None: the DEM runs' own time scale); the rule is
+    ``twin_core.compartment.operating_point``. The declared line model (close-loop, plant
+    simulator) uses its axial-dispersion equivalent (fitted to its E(t)). ``kernel_s``: length of E(t) kept for the streaming convolution;
     ``adopt_rtd_estimates``: replace E(t) by the rtd service's fits; ``adopt_findings``: add the
     effects the closeloop service finds (``twin/<line>/closeloop/finding``) to the prediction
     model (the time-invariant blender and feeder effects). ``adoption_delay_s``: plant seconds
@@ -121,6 +137,8 @@ class BlenderModelConfig(StrictModel):
         default_factory=lambda: {"tau_d": 11.92, "tau": 16.37, "pe": 7.67}
     )
     export_path: str | None = None
+    blade_speed_rpm: Positive = 100.0
+    holdup: HoldupConfig | None = None
     kernel_s: Positive = 300.0
     adopt_rtd_estimates: bool = False
     adopt_findings: bool = True
@@ -130,8 +148,6 @@ class BlenderModelConfig(StrictModel):
     @model_validator(mode="after")
     def _model_complete(self) -> BlenderModelConfig:
         if self.kind == "compartment":
-            if not self.export_path:
-                raise ValueError(f"export_path must be given for kind 'compartment', got {None!r}")
             return self
         if self.model not in RTD_MODELS:
             raise ValueError(f"model must be one of {sorted(RTD_MODELS)}, got {self.model!r}")

@@ -91,7 +91,9 @@ class BlenderModelUpdate(Message):
     SIGNAL = "model"
 
     model: BlenderModel = Field(description="the section model (rpm_basis: its blade speed)")
-    detail: Text = Field(default="", description="how it was made (scene, run, job id)")
+    detail: str = Field(
+        default="", max_length=4096, description="how it was made (scene, run, job id)"
+    )
 
     @model_validator(mode="after")
     def _has_rpm(self) -> BlenderModelUpdate:
@@ -109,14 +111,16 @@ class BlenderModelInUse(Message):
 
     kind: Literal["rtd", "compartment"] = Field(description="RTD model or compartment model")
     name: Text = Field(description="model name, or the compartment models it is built from")
-    reason: Literal["start", "blade_speed", "throughput", "new_model"] = Field(
+    reason: Literal["start", "blade_speed", "throughput", "new_model", "rtd_estimate"] = Field(
         description="what made the twin switch"
     )
     applies_from_s: NonNegative = Field(description="plant time the model applies from")
     blade_speed_rpm: NonNegative | None = Field(default=None, description="operating point")
     throughput_kg_h: NonNegative | None = Field(default=None, description="operating point")
     mean_residence_time_s: NonNegative = Field(description="mean of the model's E(t), s")
-    rule: Text = Field(default="", description="how the model was obtained for this point")
+    rule: str = Field(
+        default="", max_length=4096, description="how the model was obtained for this point"
+    )
 
 
 EventKind = Literal[

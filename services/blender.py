@@ -36,14 +36,24 @@ from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import (
     AdoptionProgress,
+    BlenderDrive,
+    BlenderModelInUse,
+    BlenderModelUpdate,
     Event,
     FeederFlow,
     PredictedConcentration,
     RtdEstimate,
 )
-from services.common import AdoptionGate, TickMark, applies_from, record_late
+from services.common import (
+    AdoptionGate,
+    TickMark,
+    applies_from,
+    follow_operating_point,
+    record_late,
+)
 from services.service import Service
 from twin_core.online.blender import BlenderPredictor
+from twin_core.online.drive import OperatingPointTracker
 from twin_core.online.inlet import event_record
 from twin_core.plant.effects import make_effect
 
@@ -66,14 +76,20 @@ class BlenderService(Service):
         self._mark = TickMark(self.state_path / "blender.last_t")
         self.last_published_t = self._mark.read()
         self.gate = AdoptionGate(spec.adoption_sources())
+        self.drive = OperatingPointTracker(spec)
 
     def setup(self) -> None:
         line = self.spec.name
         self.pub = self.publisher(
             keys.predicted_concentration(line, "outlet"), PredictedConcentration, history=True
         )
+        self.model_pub = self.publisher(
+            keys.blender_model_in_use(line), BlenderModelInUse, history=True
+        )
         self.history_subscribe(keys.feeder_flows(line), FeederFlow)
         self.history_subscribe(keys.events(line), Event)
+        self.history_subscribe(keys.blender_drives(line), BlenderDrive)
+        self.history_subscribe(keys.blender_model_updates(line), BlenderModelUpdate)
         if self.spec.blender.adopt_rtd_estimates:
             self.history_subscribe(keys.rtd_estimate(line), RtdEstimate)
         if self.spec.blender.adopt_findings:
@@ -82,6 +98,8 @@ class BlenderService(Service):
             self.history_subscribe(keys.adoption_progress(line, source), AdoptionProgress)
 
     def handle(self, key: str, msg: Any) -> None:
+        if isinstance(msg, (FeederFlow, BlenderDrive, BlenderModelUpdate)):
+            follow_operating_point(self, self.drive, key, msg)
         if isinstance(msg, FeederFlow):
             if self.gate.hold(key, msg):
                 self.counters.inc("held_for_adoption")
@@ -160,6 +178,30 @@ class BlenderService(Service):
                 )
             self.last_published_t = t
             self._mark.write(t)
+            self._announce_switches(t)
+
+    def _announce_switches(self, t: float) -> None:
+        """A ``BlenderModelInUse`` for each model switch applied up to tick ``t`` (the start's
+        at the first tick; seq from the tick, so a restarted blender's repeats are duplicates)."""
+        k = self.core.kernel
+        for i, (t_switch, reason) in enumerate(k.take_switches()):
+            t_from = t if reason == "start" else t_switch
+            point = k.point
+            self.model_pub.publish(
+                BlenderModelInUse(
+                    t=t,
+                    seq=int(round(t / self.spec.dt_s)) * 8 + min(i, 7),
+                    kind="compartment" if k.table is not None else "rtd",
+                    name=k.describe(),
+                    reason=reason,
+                    applies_from_s=t_from,
+                    blade_speed_rpm=point.rpm if point is not None else None,
+                    throughput_kg_h=point.throughput_kg_h if point is not None else None,
+                    mean_residence_time_s=k.mean_residence_time_s(),
+                    rule=k.rule_text(),
+                )
+            )
+            self.counters.inc("model_switches")
 
     def finish(self) -> None:
         self._mark.close()

@@ -262,6 +262,40 @@ def record_late(service: _Reporting, late_s: float, msg: Any) -> None:
     )
 
 
+def follow_operating_point(service: Any, tracker: Any, key: str, msg: Any) -> None:
+    """Schedule on ``service.core`` (blender or diverter core) the model switch a plant message
+    brings, at its plant time: a ``BlenderDrive`` with a new blade speed or a ``FeederFlow``
+    whose set point changes the throughput (``twin_core.online.drive.OperatingPointTracker``), or
+    a ``BlenderModelUpdate`` (a new section model). Counted in ``operating_point_changes`` /
+    ``models_received``; for an RTD-model blender, which has no law for the operating point, in
+    ``operating_point_not_modelled``."""
+    from schemas import keys
+    from schemas.messages import BlenderDrive, BlenderModelUpdate, FeederFlow
+
+    kernel = service.core.kernel
+    if isinstance(msg, BlenderModelUpdate):
+        if kernel.table is None:
+            service.counters.inc("operating_point_not_modelled")
+            return
+        record_late(service, service.core.schedule(msg.t, "model", msg.model), msg)
+        service.counters.inc("models_received")
+        return
+    if isinstance(msg, BlenderDrive):
+        point, reason = tracker.drive(msg.blade_speed_rpm), "blade_speed"
+    elif isinstance(msg, FeederFlow):
+        point, reason = tracker.setpoint(keys.parse_key(key).id, msg.setpoint_kg_h), "throughput"
+    else:
+        return
+    if point is None:
+        return
+    if kernel.table is None:
+        service.counters.inc("operating_point_not_modelled")
+        return
+    late = service.core.schedule(msg.t, "operating_point", (point, reason))
+    record_late(service, late, msg)
+    service.counters.inc("operating_point_changes")
+
+
 def state_dir(spec: LineSpec) -> Path:
     """The run's state directory: ``$TWIN_STATE_DIR`` (set by ``twin up``) or ``spec.state_dir``."""
     return Path(os.environ.get(STATE_ENV) or spec.state_dir)

@@ -15,6 +15,10 @@ thread:
 - ``params.analysis = true``: the scene's full run and analysis
   (``twin_core.scenes.<scene>.run``: results.json, grid fields for the compartment model,
   feed-factor curves...) into the job directory; the result lists its files and scalar results.
+  For a blender section (unless ``params.build_model = false``) the compartment model of the
+  run is built (``twin_core.compartment.build``), saved as ``blender_model.json`` and published
+  as a :class:`~schemas.messages.BlenderModelUpdate` on ``twin/<line>/blender/dem/model``: the
+  blender and the diverter add it to their table of models from the request's plant time.
 
 Results: :class:`~schemas.messages.DemJobResult` on ``twin/<line>/dem/<job_id>/result``; a
 failing job gives ``state: failed`` with the error, never a dead service. Job directories are
@@ -44,7 +48,7 @@ from pydantic import ValidationError
 
 from schemas import keys
 from schemas.line import LineSpec
-from schemas.messages import DemJobProgress, DemJobRequest, DemJobResult
+from schemas.messages import BlenderModelUpdate, DemJobProgress, DemJobRequest, DemJobResult
 from services.bus import Publisher
 from services.service import Service
 
@@ -218,6 +222,7 @@ class DemService(Service):
 
         params = dict(req.params)
         analysis = bool(params.pop("analysis", False))
+        build_model = bool(params.pop("build_model", True))
         rpm = params.pop("rpm", None)
         data: dict[str, Any] = {"scene": req.scene, "name": req.job_id, **params}
         if req.seed is not None:
@@ -233,6 +238,8 @@ class DemService(Service):
         if analysis:
             args = (cfg, float(rpm), job_dir) if needs_rpm else (cfg, job_dir)
             results = module.run(*args, resume=True, progress=False)
+            if needs_rpm and build_model:
+                self._publish_blender_model(req, job_dir, float(rpm), cfg)
             self._progress(req, "done", 1.0, message="analysis written")
             outputs = {
                 p.stem.replace(" ", "_")[:128]: str(p)
@@ -272,6 +279,36 @@ class DemService(Service):
         if pos.size:
             metrics["mean_height_m"] = float(pos[:, 2].mean())
         return {"checkpoint": str(ckpt)}, metrics
+
+    def _publish_blender_model(
+        self, req: DemJobRequest, job_dir: Path, rpm: float, cfg: Any
+    ) -> None:
+        """The compartment model of a blender-section run (``build_blender_model`` on its fields
+        and transit times) saved as ``blender_model.json`` and published as a
+        ``BlenderModelUpdate``, which the blender and the diverter add to their table."""
+        from twin_core.compartment import load_fields
+        from twin_core.compartment.build import BuildOptions, build_blender_model
+
+        transit = np.load(job_dir / "transit_times.npz")["transit_s"]
+        opts = BuildOptions(rpm=rpm, transit_times=transit, transit_window_s=cfg.mix_s)
+        built = build_blender_model(load_fields(job_dir / "fields.npz"), opts, source=req.job_id)
+        built.blender.save(job_dir / "blender_model.json")
+        pub = self._pub_model()
+        pub.publish(
+            BlenderModelUpdate(
+                t=req.t,
+                seq=pub.seq,
+                model=built.blender,
+                detail=f"dem job {req.job_id}: {cfg.scene} at {rpm:g} rpm, {cfg.mix_s:g} s",
+            )
+        )
+        self.counters.inc("models_published")
+
+    def _pub_model(self) -> Publisher:
+        k = keys.blender_model_update(self.spec.name, "dem")
+        if k not in self._pubs:
+            self._pubs[k] = self.publisher(k, BlenderModelUpdate, history=True)
+        return self._pubs[k]
 
     def finish(self) -> None:
         self.jobs.put(None)

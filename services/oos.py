@@ -49,6 +49,8 @@ from schemas.line import LineSpec
 from schemas.messages import (
     END_OF_STREAM,
     AdoptionProgress,
+    BlenderDrive,
+    BlenderModelUpdate,
     DivertCommand,
     Event,
     FeederFlow,
@@ -57,9 +59,16 @@ from schemas.messages import (
     PredictedConcentration,
     RtdEstimate,
 )
-from services.common import OutputLog, ProducerProgress, applies_from, record_late
+from services.common import (
+    OutputLog,
+    ProducerProgress,
+    applies_from,
+    follow_operating_point,
+    record_late,
+)
 from services.service import Service
 from twin_core.online.diverter import DiverterOutput
+from twin_core.online.drive import OperatingPointTracker
 from twin_core.online.feed import FeedCheck
 from twin_core.online.inlet import event_record
 from twin_core.online.oos import OosCore
@@ -109,6 +118,7 @@ class OosService(Service):
         self.log_ids = OutputLog(self.state_path / "oos.published")
         self.feed = FeedCheck(spec)
         self.producers = ProducerProgress(self.core.adoption_sources)
+        self.drive = OperatingPointTracker(spec)
         self._idle = 0.0
 
     def setup(self) -> None:
@@ -124,6 +134,8 @@ class OosService(Service):
                 keys.predicted_concentration(line, "outlet"), PredictedConcentration
             )
         self.history_subscribe(keys.events(line), Event)
+        self.history_subscribe(keys.blender_drives(line), BlenderDrive)
+        self.history_subscribe(keys.blender_model_updates(line), BlenderModelUpdate)
         if b.adopt_rtd_estimates:
             self.history_subscribe(keys.rtd_estimate(line), RtdEstimate)
         if b.adopt_findings:
@@ -191,6 +203,8 @@ class OosService(Service):
     def _decide(self, key: str, msg: Any) -> list[DiverterOutput] | None:
         """The core's outputs for one message (None: nothing to decide on)."""
         core = self.core
+        if isinstance(msg, (FeederFlow, BlenderDrive, BlenderModelUpdate)):
+            follow_operating_point(self, self.drive, key, msg)
         if isinstance(msg, FeederFlow):
             return core.flow(keys.parse_key(key).id, msg.t, msg.mass_flow_kg_h, msg.refilling)
         if isinstance(msg, MeasuredConcentration):

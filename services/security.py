@@ -11,8 +11,9 @@ random password per run (:class:`RunCredentials`); the router accepts only those
   and receive what the router forwards;
 - an identity may publish only its own outputs (:func:`published_keys`): the diverter ``oos``
   alone its alerts and divert commands, the ``plant`` alone the configured feeders' flows, the
-  configured sensor's concentration and the plant's events, the blender its predictions, ...;
-  and its own health, liveliness token and ping under ``twin/<line>/service/<identity>/``;
+  configured sensor's concentration, the plant's events and blade speeds, the blender its
+  predictions and the model it predicts with, the dem service its jobs' outputs and section
+  models, ...; and its own health, liveliness token and ping under ``twin/<line>/service/<identity>/``;
 - ``operator`` may request DEM jobs, which the ``dem`` service alone serves.
 
 Where the passwords are: the router's dictionary in memory (an anonymous memory file on Linux;
@@ -53,19 +54,24 @@ def published_keys(spec: LineSpec, identity: str) -> list[str]:
     line = spec.name
     outputs = {
         "oos": [keys.oos_alert(line), keys.divert_command(line)],
-        "blender": [keys.predicted_concentration(line, "outlet")],
+        "blender": [keys.predicted_concentration(line, "outlet"), keys.blender_model_in_use(line)],
         "rtd": [
             keys.rtd_estimate(line),
             keys.rtd_skipped(line),
             keys.adoption_progress(line, "rtd"),
         ],
         "closeloop": [keys.model_finding(line), keys.adoption_progress(line, "closeloop")],
-        "dem": [keys.dem_jobs(line, "progress"), keys.dem_jobs(line, "result")],
+        "dem": [
+            keys.dem_jobs(line, "progress"),
+            keys.dem_jobs(line, "result"),
+            keys.blender_model_update(line, "dem"),
+        ],
         "operator": [keys.dem_requests(line)],
         "plant": [
             *(keys.feeder_flow(line, f.id) for f in spec.feeders),
             keys.measured_concentration(line, spec.sensor.id),
             keys.events(line),
+            keys.blender_drives(line),
         ],
     }
     if spec.feeder_mode == "simulate":

@@ -28,7 +28,9 @@ from schemas.bus_config import BusConfig
 from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import (
+    BlenderModelInUse,
     DivertCommand,
+    Event,
     FeederFlow,
     MeasuredConcentration,
     OosAlert,
@@ -116,6 +118,7 @@ class _Tap:
         self.health: dict[str, ServiceHealth] = {}
         self.pred: dict[float, float] = {}
         self.meas: dict[float, float] = {}
+        self.models_in_use: dict[tuple[float, str], BlenderModelInUse] = {}
         self.alert_wall: dict[str, float] = {}
         self.duplicates = 0
         self.session = open_session(bus)
@@ -178,6 +181,14 @@ class _Tap:
                 keys.predicted_concentration(line, "outlet"),
                 cb(PredictedConcentration, on_pred),
             ),
+            HistoryFeed(
+                self.session,
+                keys.blender_model_in_use(line),
+                cb(
+                    BlenderModelInUse,
+                    lambda m: self.models_in_use.__setitem__((m.applies_from_s, m.reason), m),
+                ),
+            ),
             self.session.declare_subscriber(
                 keys.measured_concentration(line, spec.sensor.id),
                 live(cb(MeasuredConcentration, on_meas)),
@@ -194,8 +205,9 @@ class _Tap:
         self.session.close()
 
 
-def _figure(path: Path, tap: _Tap, spec: LineSpec) -> None:
-    """``outlet.png``: measured vs predicted, alert windows shaded (``twin_core.online.plots``)."""
+def _figure(path: Path, tap: _Tap, spec: LineSpec, reference: dict[float, float]) -> None:
+    """``outlet.png``: measured vs predicted by the twin's blender model and by the seed's
+    Table 6.2 axial dispersion, alert windows shaded (``twin_core.online.plots``)."""
     from twin_core.online.plots import plot_outlet
 
     lim = spec.limits(spec.sensor.component)
@@ -206,8 +218,37 @@ def _figure(path: Path, tap: _Tap, spec: LineSpec) -> None:
         spec.name,
         None if lim is None else (lim.target_pct_w_w, lim.lower_pct_w_w, lim.upper_pct_w_w),
         [(a.t_start_s, a.t_end_s) for a in tap.alerts.values()],
+        predicted_label=f"predicted ({spec.blender.kind} blender, live)",
+        others={REFERENCE_LABEL: reference} if spec.blender.kind != "rtd" else None,
     )
     fig.savefig(path, dpi=120)
+
+
+#: the reference prediction the demo compares the live blender with
+REFERENCE_LABEL = "predicted (Table 6.2 axial dispersion)"
+
+
+def reference_prediction(rec: Any, spec: LineSpec) -> dict[float, float]:
+    """What the twin predicts for the sensor's component with the seed's Table 6.2 axial
+    dispersion blender (``BlenderModelConfig`` defaults) from the recording's feeder flows and
+    tracer events, computed here (``twin_core.online.blender.BlenderPredictor``)."""
+    from schemas.line import BlenderModelConfig
+    from twin_core.online.blender import BlenderPredictor
+    from twin_core.online.inlet import event_record
+
+    ad = spec.model_copy(update={"blender": BlenderModelConfig(kernel_s=spec.blender.kernel_s)})
+    core = BlenderPredictor(ad)
+    comp = spec.sensor.component
+    out: dict[float, float] = {}
+    for m in rec.messages:
+        k = keys.parse_key(m.key)
+        if k.signal == "event":
+            core.add_event(event_record(Event.model_validate_json(m.payload)))
+        elif k.signal == "flow" and k.unit == "feeder" and k.id in core.components:
+            f = FeederFlow.model_validate_json(m.payload)
+            for t, conc in core.push(k.id, f.t, f.mass_flow_kg_h, f.refilling):
+                out[t] = conc[comp]
+    return out
 
 
 def _wait_for_the_twin(tap: _Tap, spec: LineSpec, rec: Any, limit_s: float = 120.0) -> None:
@@ -309,6 +350,24 @@ def failures(health: dict[str, dict]) -> list[str]:
     return lines
 
 
+def _error_text(err: dict) -> str:
+    return f"bias {err['bias']:+.3f}, RMSE {err['rmse']:.3f} % w/w" if err["n"] else "n/a"
+
+
+def _model_lines(report: dict[str, Any]) -> list[str]:
+    """The reference prediction's error and the blender models the twin used."""
+    lines = []
+    ref = report.get("reference_prediction_error_pct_w_w")
+    if ref is not None and report.get("blender_model") != "rtd":
+        lines.append(f"- the same with the seed's Table 6.2 axial dispersion: {_error_text(ref)}")
+    for m in report.get("models_in_use", []):
+        lines.append(
+            f"- blender model from {m['applies_from_s']:.0f} s ({m['reason']}): {m['name']}, "
+            f"mean residence time {m['mean_residence_time_s']:.1f} s"
+        )
+    return lines
+
+
 def report_markdown(report: dict[str, Any]) -> str:
     """``report.md``: the run in a few lines, the alerts, RTD estimates and findings."""
     t, err = report["timings_s"], report["prediction_error_pct_w_w"]
@@ -320,7 +379,9 @@ def report_markdown(report: dict[str, Any]) -> str:
         f"{t['replay_wall_s']:.2f} s ({report['speedup_achieved']:.0f}x real time)",
         f"- start-up {t['startup_s']:.1f} s, total {t['total_s']:.1f} s",
         f"- predictions: {report['predictions']}; measured - predicted: "
-        + (f"bias {err['bias']:+.3f}, RMSE {err['rmse']:.3f} % w/w" if err["n"] else "n/a"),
+        + _error_text(err)
+        + f" ({report.get('blender_model', 'rtd')} blender, live)",
+        *_model_lines(report),
         f"- OOS alerts: {len(report['alerts'])}; divert commands: "
         f"{len(report['divert_commands'])}; RTD estimates: {len(report['rtd_estimates'])} "
         f"(pulses without one: {len(report['rtd_skipped'])}); "
@@ -385,6 +446,7 @@ def run_full_twin_demo(
     spec = spec_for_recording(rec, free_port(), out / "state")
     timings: dict[str, float] = {}
     tap, n_sent, health, codes, run_dir = _run_twin(rec, spec, speed, echo, timings)
+    reference = reference_prediction(rec, spec)
     timings["total_s"] = time.perf_counter() - t0
     span = rec.duration_s
     report = {
@@ -399,7 +461,10 @@ def run_full_twin_demo(
         if timings["replay_wall_s"] > 0
         else math.inf,
         "predictions": len(tap.pred),
+        "blender_model": spec.blender.kind,
+        "models_in_use": [m.model_dump(mode="json") for _, m in sorted(tap.models_in_use.items())],
         "prediction_error_pct_w_w": prediction_error(tap.meas, tap.pred),
+        "reference_prediction_error_pct_w_w": prediction_error(tap.meas, reference),
         "alerts": [
             a.model_dump(mode="json")
             for a in sorted(tap.alerts.values(), key=lambda a: a.t_start_s)
@@ -417,6 +482,6 @@ def run_full_twin_demo(
         "run_dir": str(run_dir),
     }
     (out / "report.json").write_text(json.dumps(report, indent=2))
-    _figure(out / "outlet.png", tap, spec)
+    _figure(out / "outlet.png", tap, spec, reference)
     (out / "report.md").write_text(report_markdown(report))
     return report

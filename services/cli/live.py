@@ -147,6 +147,18 @@ def parse_disturbance(text: str) -> dict[str, Any]:
     return d
 
 
+def parse_blade_speed(text: str) -> tuple[float, float]:
+    """``T_S:RPM`` -> (plant time, blade speed)."""
+    parts = text.split(":")
+    try:
+        t, rpm = (float(x) for x in parts)
+    except ValueError:
+        raise ValueError(f"blade speed must be T_S:RPM with numbers, got {text!r}") from None
+    if not (t >= 0 and rpm > 0):
+        raise ValueError(f"blade speed must have T_S >= 0 and RPM > 0, got {text!r}")
+    return t, rpm
+
+
 #: the keys of an effect given on the command line (``twin_core.plant.effects.make_effect``)
 EFFECT_KEYS = ("name", "params", "target")
 
@@ -186,7 +198,8 @@ def cmd_plant_simulate(args: argparse.Namespace) -> int:
     effects = [parse_effect(e) for e in args.effect or []]
     check_output_file(Path(args.out))
     t0 = time.perf_counter()
-    _, msgs = simulate_messages(spec, args.duration, args.seed, dists, effects)
+    speeds = [parse_blade_speed(b) for b in args.blade_speed or []]
+    _, msgs = simulate_messages(spec, args.duration, args.seed, dists, effects, speeds)
     n = write_messages(args.out, msgs)
     print(
         f"wrote {n} messages ({args.duration:.0f} s of plant time, seed {args.seed}, "
@@ -242,6 +255,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--effect",
         action="append",
         help='hidden effect as JSON (twin_core.plant.effects), e.g. \'{"name": "bypass", ...}\'',
+    )
+    ps.add_argument(
+        "--blade-speed",
+        action="append",
+        help="T_S:RPM blade speed the plant reports from T_S on (repeatable), e.g. 900:75",
     )
     ps.set_defaults(func=cmd_plant_simulate)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])

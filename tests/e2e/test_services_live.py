@@ -38,6 +38,9 @@ DISTURBANCES = [
     {"feeder": "api", "t_s": 1200.0, "delta_kg_h": -0.6, "duration_s": 40.0},
 ]
 
+#: (plant time, rpm) of the plant's blade-speed reports
+BLADE_SPEEDS = [(0.0, 100.0), (1500.0, 75.0)]
+
 
 def make_spec(port: int, state: Path, services: list[str]) -> LineSpec:
     data = LineSpec.from_file(CONFIG).model_dump()
@@ -90,7 +93,10 @@ class Collector:
 def run_a(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("live_a")
     spec = make_spec(free_port(), tmp, ["feeder", "blender", "oos", "recorder"])
-    run, msgs = simulate_messages(spec, 1800.0, seed=3, disturbances=DISTURBANCES)
+    # the plant reports its blade speed, and changes it after the second disturbance's window
+    run, msgs = simulate_messages(
+        spec, 1800.0, seed=3, disturbances=DISTURBANCES, blade_speeds=BLADE_SPEEDS
+    )
     rec_path = tmp / "disturbed.mcap"
     write_messages(rec_path, msgs)
     rec = read_recording(rec_path)
@@ -185,6 +191,20 @@ def test_no_message_dropped_and_recorded(run_a):
     assert not [k for k in counts if "/loadcell/" in k]
     assert counts["twin/line1/blender/outlet/predicted"] == 2 * n_ticks
     assert counts["twin/line1/oos/alert"] == 2
+
+
+def test_a_recorded_blade_speed_change_switches_the_blender_model(run_a):
+    """The recording's blade speed drops to 75 rpm at 1,500 s: the compartment blender switches
+    its model from that plant time, and the switch is on the twin's own recording."""
+    rec = run_a["recorded"]
+    used = {}
+    for m in rec.messages:
+        if m.key == keys.blender_model_in_use("line1"):
+            msg = m.decode()
+            used[msg.seq] = (msg.reason, msg.applies_from_s, msg.blade_speed_rpm)
+    switches = [used[k] for k in sorted(used)]
+    assert switches[0][0] == "start" and switches[0][2] == 100.0
+    assert switches[1:] == [("blade_speed", 1500.0, 75.0)]
 
 
 @pytest.fixture(scope="module")

@@ -62,7 +62,7 @@ def estimate(applies_from_s: float) -> RtdEstimate:
 def blender(spec: LineSpec, state: Path) -> BlenderService:
     spec = spec.model_copy(update={"state_dir": str(state)})
     svc = BlenderService(spec, install_signal_handlers=False)
-    svc.pub = Pub()
+    svc.pub, svc.model_pub = Pub(), Pub()
     return svc
 
 

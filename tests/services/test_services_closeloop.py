@@ -168,9 +168,11 @@ def test_the_blender_adopts_the_finding_and_predicts_the_true_outlet_better(live
     err_declared = np.sqrt(np.mean((declared[late] - truth[late]) ** 2))
     err_live = np.sqrt(np.mean((live_pred[late] - truth[late]) ** 2))
     assert err_live < 0.3 * err_declared, (err_live, err_declared)
-    # before the adoption the blender predicted what the declared model predicts
+    # before the adoption the blender predicted with the compartment model, which the declared
+    # model stands for by its axial-dispersion fit (twin_core.plant.model.rtd_blender_config):
+    # the two differ by that fit's residual only
     early = t < 600.0
-    assert np.allclose(live_pred[early], declared[early], atol=1e-6)
+    assert np.max(np.abs(live_pred[early] - declared[early])) < 0.02
 
 
 def test_services_stop_cleanly(live):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from schemas.line import LineSpec, TracerPulse
+from schemas.line import BlenderModelConfig, LineSpec, TracerPulse
 from schemas.messages import RtdEstimate
 from services.rtd import RtdService
 from twin_core.plant import simulate_line
@@ -34,6 +34,7 @@ def test_rtd_service_fits_the_announced_pulse_and_skips_a_feeder_disturbance(tmp
     restarted service (same run directory) publishes neither again."""
     spec = LineSpec.from_file(CONFIG)
     spec.state_dir = str(tmp_path)
+    spec.blender = BlenderModelConfig()  # seed Table 6.2 drives the simulated line
     cfg = spec.model_copy(deep=True)
     cfg.tracers.append(TracerPulse(t_s=900.0, mass_kg=0.010, component="api"))
     for f in cfg.feeders:

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import heapq
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -62,11 +61,9 @@ def declared_kernel(spec: LineSpec) -> np.ndarray:
     t = tick_grid(spec.dt_s, b.kernel_s)
     if b.kind == "rtd":
         return model_e(b.model, dict(b.params), t)
-    from schemas.blender_model import BlenderModel
-    from twin_core.compartment.blender_model import blender_model_rtd
+    from twin_core.compartment.operating_point import configured_point, table_from_config
 
-    model = BlenderModel.model_validate_json(Path(b.export_path).read_text())
-    return np.asarray(blender_model_rtd(model, t), dtype=float)
+    return table_from_config(b).rtd(configured_point(spec), t)
 
 
 class BlenderKernel:
@@ -80,6 +77,8 @@ class BlenderKernel:
 
     #: longest E(t) an adopted effect may stretch the kernel to, s
     MAX_KERNEL_S = 7200.0
+    #: the kinds of update :meth:`schedule` takes
+    UPDATE_KINDS = ("estimate", "effects", "operating_point", "model")
 
     def __init__(self, spec: LineSpec, e: np.ndarray | None = None) -> None:
         b = spec.blender
@@ -93,7 +92,24 @@ class BlenderKernel:
         self.model_name = b.model if b.kind == "rtd" else "compartment"
         #: adopted effects (rtd and feeder stage)
         self.effects: list[Effect] = []
-        self.e = declared_kernel(spec) if e is None else np.asarray(e, float)
+        #: compartment models by blade speed and the operating point in use (compartment only)
+        self.table: Any = None
+        self.point: Any = None
+        #: E(t) comes from the table (not from an adopted RTD estimate)
+        self._table_based = False
+        if b.kind == "compartment" and e is None:
+            from twin_core.compartment.operating_point import (
+                configured_point,
+                table_from_config,
+            )
+
+            self.table, self.point = table_from_config(b), configured_point(spec)
+            self._table_based = True
+            self.e = self.table.rtd(self.point, tick_grid(self.dt, self.length_s))
+        else:
+            self.e = declared_kernel(spec) if e is None else np.asarray(e, float)
+        #: model switches applied and not yet taken by :meth:`take_switches`: (plant time, reason)
+        self._switches: list[tuple[float, str]] = [(0.0, "start")]
         #: scheduled updates not yet applied: (applies from, order, kind, payload)
         self._pending: list[tuple[float, int, str, Any]] = []
         self._n_scheduled = 0
@@ -102,10 +118,12 @@ class BlenderKernel:
 
     def schedule(self, t_from: float, kind: str, payload: Any) -> None:
         """An update to apply from plant time ``t_from`` on: ``kind`` ``estimate`` (payload
-        ``(model, params)``, :meth:`adopt_estimate`) or ``effects`` (a list of effects,
-        :meth:`adopt_effects`); equal times apply in scheduling order."""
-        if kind not in ("estimate", "effects"):
-            raise ValueError(f"kind must be 'estimate' or 'effects', got {kind!r}")
+        ``(model, params)``, :meth:`adopt_estimate`), ``effects`` (a list of effects,
+        :meth:`adopt_effects`), ``operating_point`` (an ``OperatingPoint`` and the reason,
+        :meth:`adopt_operating_point`) or ``model`` (a ``BlenderModel``, :meth:`adopt_model`);
+        equal times apply in scheduling order."""
+        if kind not in self.UPDATE_KINDS:
+            raise ValueError(f"kind must be one of {list(self.UPDATE_KINDS)}, got {kind!r}")
         if kind == "effects":
             self.latest_effects = [dict(e) for e in payload]
         heapq.heappush(self._pending, (float(t_from), self._n_scheduled, kind, payload))
@@ -119,22 +137,103 @@ class BlenderKernel:
             _, _, kind, payload = heapq.heappop(self._pending)
             if kind == "estimate":
                 self.adopt_estimate(*payload)
-            else:
+                self._note_switch(t, "rtd_estimate")
+            elif kind == "effects":
                 self.adopt_effects(payload)
+            elif kind == "operating_point":
+                if not self.adopt_operating_point(payload[0]):
+                    continue
+                self._note_switch(t, payload[1])
+            else:
+                self.adopt_model(payload)
+                self._note_switch(t, "new_model")
             changed = True
         return changed
+
+    def _note_switch(self, t: float, reason: str) -> None:
+        """Keep a switch for :meth:`take_switches`; several at one tick are one (the last)."""
+        if self._switches and self._switches[-1][0] == t and self._switches[-1][1] != "start":
+            self._switches[-1] = (t, reason)
+        else:
+            self._switches.append((t, reason))
+
+    def adopt_operating_point(self, point: Any) -> bool:
+        """The blender's E(t) at a new operating point (blade speed, throughput) from the
+        table of compartment models (``twin_core.compartment.operating_point``); returns False
+        (nothing changes) for an RTD-model blender, which has no law for it."""
+        if self.table is None:
+            return False
+        self.point = point
+        self.model_name = "compartment"
+        self._from_table()
+        return True
+
+    def _from_table(self) -> None:
+        """E(t) from the table at the operating point; with adopted rtd-stage effects, on its
+        axial-dispersion equivalent (the model the close-loop found them against: the declared
+        line model of a compartment blender, ``twin_core.plant.model.rtd_blender_config``)."""
+        if any(e.stage == "rtd" for e in self.effects):
+            self.rtd_model = self.table.rtd_equivalent(self.point)
+            self._table_based = True
+            self.e = self._with_effects()
+        else:
+            self.rtd_model = None
+            self._table_based = True
+            self.e = self.table.rtd(self.point, tick_grid(self.dt, self.length_s))
+
+    def adopt_model(self, model: Any) -> bool:
+        """A new section model (``BlenderModel`` at its blade speed) joins the table; E(t) is
+        rebuilt at the operating point in use. False (ignored) for an RTD-model blender."""
+        if self.table is None:
+            return False
+        self.table.add(model)
+        return self.adopt_operating_point(self.point)
+
+    def take_switches(self) -> list[tuple[float, str]]:
+        """The model switches applied since the last call: (plant time, reason), reason one of
+        ``start``, ``blade_speed``, ``throughput``, ``new_model``, ``rtd_estimate``."""
+        out, self._switches = self._switches, []
+        return out
+
+    def describe(self) -> str:
+        """The model in use in words: the compartment models mixed at the operating point, or
+        the RTD model's name."""
+        if self.table is not None and self.model_name == "compartment":
+            return f"compartment: {self.table.describe(self.point)}"
+        return self.model_name
+
+    def rule_text(self) -> str:
+        """How the model was obtained for the operating point (``BlenderModelInUse.rule``)."""
+        if self.table is None or self.model_name != "compartment":
+            return ""
+        rule = self.table.rule
+        if rule.holdup_kg is None:
+            return "DEM time scale; shapes mixed linearly in rpm"
+        b = rule.basis
+        return (
+            f"holdup {rule.holdup_kg:g} kg at {b.rpm:g} rpm, {b.throughput_kg_h:g} kg/h; "
+            f"x kappa ratio x (Q/Q_b)^{rule.beta:g}; shapes mixed linearly in rpm"
+        )
+
+    def mean_residence_time_s(self) -> float:
+        """Mean of the E(t) in use (its tick grid)."""
+        t = tick_grid(self.dt, self.e.size * self.dt)[: self.e.size]
+        mass = float(np.sum(self.e))
+        return float(np.sum(t * self.e) / mass) if mass > 0 else 0.0
 
     def adoptable(self, effect: Effect) -> bool:
         """Can this effect change the prediction of the outlet (see the module docstring)?"""
         if not effect.time_invariant or effect.stage == "sensor":
             return False
-        return effect.stage in ("feeder", "unit") or self.rtd_model is not None
+        rtd_based = self.rtd_model is not None or self.table is not None
+        return effect.stage in ("feeder", "unit") or rtd_based
 
     def adopt_estimate(self, model: str, params: Mapping[str, float]) -> np.ndarray:
         """An adopted RTD estimate: the new base E(t) (the adopted rtd effects stay on top of it
         when the blender is an RTD model); returns the new E(t)."""
-        if self.rtd_model is not None:
+        if self.rtd_model is not None or self.table is not None:
             self.rtd_model = (model, dict(params))
+            self._table_based = False
             self.e = self._with_effects()
         else:
             self.e = model_e(model, dict(params), tick_grid(self.dt, self.length_s))
@@ -145,7 +244,9 @@ class BlenderKernel:
         """Adopt a model's effects; returns the ones that could not be adopted."""
         effs = [make_effect(e) for e in effects]
         self.effects = [e for e in effs if self.adoptable(e)]
-        if self.rtd_model is not None:
+        if self.table is not None and self._table_based:
+            self._from_table()
+        elif self.rtd_model is not None:
             self.e = self._with_effects()
         return [e for e in effs if not self.adoptable(e)]
 

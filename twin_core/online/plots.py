@@ -18,10 +18,12 @@ def plot_outlet(
     line: str,
     limits: tuple[float, float, float] | None = None,
     alert_windows: Sequence[tuple[float, float]] = (),
+    predicted_label: str = "predicted (blender)",
+    others: Mapping[str, Mapping[float, float]] | None = None,
 ) -> Figure:
     """Measured (NIR) vs predicted (blender) outlet concentration of ``component`` by plant
     time, the target and limits ``(target, lower, upper)`` as horizontal lines, the OOS alert
-    windows shaded."""
+    windows shaded; ``others``: more predictions by label (e.g. another blender model)."""
     fig = Figure(figsize=(11, 4.5), layout="tight")
     ax = fig.subplots()
     tm = np.array(sorted(measured))
@@ -29,9 +31,10 @@ def plot_outlet(
     if tm.size:
         ax.plot(tm, [measured[t] for t in tm], ".", ms=2, color="0.55", label="measured (NIR)")
     if tp.size:
-        ax.plot(
-            tp, [predicted[t] for t in tp], "-", lw=1.2, color="C0", label="predicted (blender)"
-        )
+        ax.plot(tp, [predicted[t] for t in tp], "-", lw=1.2, color="C0", label=predicted_label)
+    for i, (label, series) in enumerate((others or {}).items()):
+        ts = np.array(sorted(series))
+        ax.plot(ts, [series[t] for t in ts], "--", lw=1.0, color=f"C{i + 1}", label=label)
     if limits is not None:
         for v, ls in zip(limits, ("-", "--", "--")):
             ax.axhline(v, color="k", lw=0.8, ls=ls)

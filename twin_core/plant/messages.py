@@ -23,7 +23,7 @@ import numpy as np
 
 from schemas import keys
 from schemas.line import LineSpec
-from schemas.messages import FeederFlow, MeasuredConcentration
+from schemas.messages import BlenderDrive, FeederFlow, MeasuredConcentration
 from twin_core.plant.simulate import FeederRecord, LineRun, simulate_feeder, simulate_line
 
 __all__ = ["feeder_flow_messages", "run_messages", "simulate_messages"]
@@ -96,8 +96,12 @@ def simulate_messages(
     seed: int | None = 0,
     disturbances: Sequence[Mapping[str, Any]] = (),
     effects: Sequence[Mapping[str, Any]] = (),
+    blade_speeds: Sequence[tuple[float, float]] = (),
 ) -> tuple[LineRun, list[tuple[str, Any]]]:
-    """Simulate the line of ``spec`` (``simulate_line``); return (run, messages)."""
+    """Simulate the line of ``spec`` (``simulate_line``); return (run, messages).
+    ``blade_speeds``: (plant time, rpm) reports of the blender's drive (``BlenderDrive``) put in
+    the messages; the simulated blender itself does not change with them (its E(t) is the
+    declared one)."""
     run = simulate_line(
         spec,
         duration_s,
@@ -106,7 +110,15 @@ def simulate_messages(
         effects=list(effects),
         disturbances=list(disturbances),
     )
-    return run, run_messages(run, spec)
+    msgs = run_messages(run, spec)
+    if not blade_speeds:
+        return run, msgs
+    key = keys.blender_drive(spec.name)
+    drives = [
+        (key, BlenderDrive(t=float(t), seq=i, blade_speed_rpm=float(rpm)))
+        for i, (t, rpm) in enumerate(sorted(blade_speeds))
+    ]
+    return run, sorted([*msgs, *drives], key=lambda km: km[1].t)
 
 
 def feeder_flow_messages(spec: LineSpec, duration_s: float) -> list[tuple[str, FeederFlow]]:

@@ -128,13 +128,17 @@ def pulse_bin_flow(
     return rate * overlap / dt
 
 
-def require_rtd_blender(config: LineConfig) -> None:
-    """The declared line model convolves with an RTD model: ``blender.kind`` must be ``rtd``
-    (a compartment export is the live blender service's alternative, not a declared model)."""
-    if config.blender.kind != "rtd":
-        raise ValueError(
-            f"blender.kind must be 'rtd' for the declared line model, got {config.blender.kind!r}"
-        )
+def rtd_blender_config(config: LineConfig) -> LineConfig:
+    """The line with an RTD-model blender, as the declared line model convolves with one: the
+    config itself for ``blender.kind: rtd``; for a compartment blender, its axial-dispersion
+    equivalent at the declared operating point
+    (``twin_core.compartment.operating_point.rtd_equivalent``)."""
+    if config.blender.kind == "rtd":
+        return config
+    from twin_core.compartment.operating_point import configured_point, rtd_equivalent
+
+    blender = rtd_equivalent(config.blender, configured_point(config))
+    return config.model_copy(update={"blender": blender})
 
 
 def _apply_feeder_effects(inputs: LineInputs, feeder: str, effects: Sequence[Effect]) -> np.ndarray:
@@ -358,7 +362,7 @@ class LineModel:
     effects: list[Effect] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        require_rtd_blender(self.config)
+        self.config = rtd_blender_config(self.config)
         self.effects = [make_effect(e) for e in self.effects]
 
     def augmented(self, effects: Sequence[Effect | Mapping]) -> LineModel:

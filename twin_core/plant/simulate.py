@@ -42,7 +42,7 @@ from twin_core.plant.model import (
     LineModel,
     inlet_component_flows,
     outlet_concentration,
-    require_rtd_blender,
+    rtd_blender_config,
     sensor_signal,
 )
 from twin_core.plant.nir import add_nir_noise
@@ -220,7 +220,7 @@ def simulate_line(
     """
     if not isinstance(config, LineConfig):
         raise ValueError(f"config must be a LineConfig, got {type(config).__name__}")
-    require_rtd_blender(config)
+    config = rtd_blender_config(config)
     if not (math.isfinite(duration_s) and duration_s > 0):
         raise ValueError(f"duration_s must be > 0, got {duration_s!r}")
     if not (math.isfinite(dt_s) and 0 < dt_s <= duration_s):

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from schemas.line import LineSpec, TracerPulse
+from schemas.line import BlenderModelConfig, LineSpec, TracerPulse
 from twin_core.online.blender import BlenderPredictor, FlowMemory, tick_grid
 from twin_core.plant import FlowDisturbance, LineModel, simulate_line
 from twin_core.plant.messages import simulate_messages
@@ -18,7 +18,10 @@ DIST = [FlowDisturbance("api", 300.0, 0.6, 30.0), FlowDisturbance("api", 750.0, 
 
 
 def spec_with(**kw) -> LineSpec:
+    """line1 with the seed's Table 6.2 axial-dispersion blender (the declared line model's own
+    kernel: the streaming and batch convolutions are compared on the same E(t))."""
     data = LineSpec.from_file(CONFIG).model_dump()
+    data["blender"] = BlenderModelConfig().model_dump()
     data.update(kw)
     return LineSpec.model_validate(data)
 
@@ -176,7 +179,7 @@ def test_prediction_with_adopted_effects_equals_the_batch_model(effects):
     """Peer: the batch line model with the same effects on the same reported flows (refills
     included), after the streaming kernel's start-up (the batch model starts from steady state
     analytically)."""
-    data = LineSpec.from_file(CONFIG).model_dump()
+    data = spec_with().model_dump()
     data["feeders"][0]["liw"] = dict(initial_mass_kg=0.6, refill_low_kg=0.45, refill_high_kg=0.65)
     spec = LineSpec.model_validate(data)
     cfg = spec.model_copy(deep=True)
@@ -190,7 +193,7 @@ def test_prediction_with_adopted_effects_equals_the_batch_model(effects):
 
 
 def test_drifts_and_sensor_effects_are_not_adopted():
-    bp = BlenderPredictor(LineSpec.from_file(CONFIG))
+    bp = BlenderPredictor(spec_with())
     left = bp.set_effects(
         [
             {"name": "feed_factor_drift", "target": "api", "params": {"rate_per_h": 0.2}},

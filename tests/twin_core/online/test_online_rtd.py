@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from schemas.line import LineSpec, TracerPulse
+from schemas.line import BlenderModelConfig, LineSpec, TracerPulse
 from twin_core.online.rtd import RtdCore, analyze_segment
 from twin_core.online.tracer import TracerPulseDetector
 from twin_core.plant import simulate_line
@@ -16,7 +16,9 @@ CONFIG = Path(__file__).resolve().parents[3] / "services" / "configs" / "line1.y
 
 
 def spec_with(**kw) -> LineSpec:
+    """line1 with the seed's Table 6.2 axial-dispersion blender driving the simulated line."""
     data = LineSpec.from_file(CONFIG).model_dump()
+    data["blender"] = BlenderModelConfig().model_dump()
     data.update(kw)
     return LineSpec.model_validate(data)
 

@@ -234,14 +234,20 @@ def test_line_starts_full_at_steady_state_with_slow_rtd_effects():
     assert run_p.outlet_true_pct_w_w["api"][-1] == pytest.approx(10.0, rel=1e-4)
 
 
-def test_declared_model_needs_an_rtd_blender():
-    """A compartment export drives the live blender service only; the declared line model and the
-    simulator convolve with an RTD model and say so."""
+def test_a_compartment_blender_is_declared_by_its_axial_dispersion_equivalent():
+    """The declared line model and the simulator convolve with an RTD model: a compartment
+    blender (the shipped section models) enters them as the axial-dispersion law fitted to its
+    E(t), whose mean is the table's (M / Q, 32.5 s here); a missing export is one error."""
     cfg = ideal_line()
-    cfg.blender = BlenderModelConfig(kind="compartment", export_path="model.json")
-    with pytest.raises(ValueError, match="blender.kind must be 'rtd'"):
-        LineModel(cfg)
-    with pytest.raises(ValueError, match="blender.kind must be 'rtd'"):
+    cfg.blender = BlenderModelConfig(
+        kind="compartment", holdup={"kg": 0.1083, "rpm": 100.0, "throughput_kg_h": 12.0}
+    )
+    declared = LineModel(cfg).config.blender
+    assert declared.kind == "rtd" and declared.model == "axial_dispersion_open"
+    p = declared.params
+    assert p["tau_d"] + p["tau"] * (1 + 2 / p["pe"]) == pytest.approx(32.49, rel=0.03)
+    cfg.blender = BlenderModelConfig(kind="compartment", export_path="/nonexistent/model.json")
+    with pytest.raises(ValueError, match="export_path '/nonexistent/model.json' does not exist"):
         simulate_line(cfg, 10.0)
 
 
