@@ -116,7 +116,10 @@ class BlenderModelConfig(StrictModel):
     DEM runs, ``twin_core/compartment/data``) at the operating point: ``blade_speed_rpm`` until
     the plant reports one (``BlenderDrive``), the feeders' set points as throughput, ``holdup``
     (None: the DEM runs' own time scale); the rule is
-    ``twin_core.compartment.operating_point``. The declared line model (close-loop, plant
+    ``twin_core.compartment.operating_point``. A blade speed outside the table's range (by more
+    than 5 %) makes the blender request a DEM run of the section there from the dem service
+    (when it runs), with the packaged scene ``dem_preset`` (``twin_core/scenes/configs``; None:
+    no request); the model built from it joins the table when it is published. The declared line model (close-loop, plant
     simulator) uses its axial-dispersion equivalent (fitted to its E(t)). ``kernel_s``: length of E(t) kept for the streaming convolution;
     ``adopt_rtd_estimates``: replace E(t) by the rtd service's fits; ``adopt_findings``: add the
     effects the closeloop service finds (``twin/<line>/closeloop/finding``) to the prediction
@@ -139,6 +142,7 @@ class BlenderModelConfig(StrictModel):
     export_path: str | None = None
     blade_speed_rpm: Positive = 100.0
     holdup: HoldupConfig | None = None
+    dem_preset: Ident | None = "blender_small"
     kernel_s: Positive = 300.0
     adopt_rtd_estimates: bool = False
     adopt_findings: bool = True

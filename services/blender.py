@@ -39,6 +39,7 @@ from schemas.messages import (
     BlenderDrive,
     BlenderModelInUse,
     BlenderModelUpdate,
+    DemJobRequest,
     Event,
     FeederFlow,
     PredictedConcentration,
@@ -77,6 +78,8 @@ class BlenderService(Service):
         self.last_published_t = self._mark.read()
         self.gate = AdoptionGate(spec.adoption_sources())
         self.drive = OperatingPointTracker(spec)
+        #: blade speeds a section run was requested for
+        self._requested: set[float] = set()
 
     def setup(self) -> None:
         line = self.spec.name
@@ -100,6 +103,8 @@ class BlenderService(Service):
     def handle(self, key: str, msg: Any) -> None:
         if isinstance(msg, (FeederFlow, BlenderDrive, BlenderModelUpdate)):
             follow_operating_point(self, self.drive, key, msg)
+        if isinstance(msg, BlenderDrive):
+            self._request_section_run(msg)
         if isinstance(msg, FeederFlow):
             if self.gate.hold(key, msg):
                 self.counters.inc("held_for_adoption")
@@ -121,6 +126,51 @@ class BlenderService(Service):
         elif isinstance(msg, AdoptionProgress):
             unit = keys.parse_key(key).unit
             self._progress(self.gate.report(unit, msg.complete_to_s, msg.last_update_t_s))
+
+    def _request_section_run(self, msg: BlenderDrive) -> None:
+        """A blade speed more than 5 % outside the table of section models: ask the dem service
+        (when it runs) for a section run there with the packaged scene ``blender.dem_preset``;
+        the model it publishes joins the table (``BlenderModelUpdate``). Once per speed (2 %)."""
+        b, table = self.spec.blender, self.core.kernel.table
+        if table is None or b.dem_preset is None or "dem" not in self.spec.services:
+            return
+        rpm = float(msg.blade_speed_rpm)
+        speeds = table.speeds
+        if 0.95 * speeds[0] <= rpm <= 1.05 * speeds[-1]:
+            return
+        if any(abs(rpm - r) <= 0.02 * r for r in self._requested):
+            return  # requested already (within 2 %)
+        from schemas.dem_scene import load_scene
+        from services.dem import scene_data
+
+        self._requested.add(rpm)
+        job = f"blender_{round(rpm, 1):g}rpm"
+        params = {"preset": b.dem_preset, "rpm": rpm, "analysis": True}
+        scene = load_scene(scene_data("blender", job, {"preset": b.dem_preset}, None))
+        req = DemJobRequest(
+            t=msg.t,
+            seq=len(self._requested),
+            job_id=job,
+            scene="blender",
+            params=params,
+            duration_s=scene.settle_s + scene.mix_s,
+        )
+        self.publish_request(req)
+        self.counters.inc("dem_runs_requested")
+        log.warning(
+            "blender: %g rpm is outside the section models' %g-%g rpm: extrapolating, and a "
+            "DEM run of the section (%s) was requested as job %s",
+            rpm,
+            speeds[0],
+            speeds[-1],
+            b.dem_preset,
+            job,
+        )
+
+    def publish_request(self, req: DemJobRequest) -> None:
+        """Put a DEM job request on its key (the dem service accepts puts)."""
+        key = keys.dem_job(self.spec.name, req.job_id, "request")
+        self.publisher(key, DemJobRequest).publish(req)
 
     def idle(self) -> None:
         # a producer down for long must not stop the predictions (module docstring)

@@ -12,6 +12,8 @@ thread:
   ``duration_s`` with ``twin_core.dem.Simulation.run``, whose callback streams
   ``DemJobProgress`` (20 updates) on ``twin/<line>/dem/<job_id>/progress``; the result holds
   the checkpoint file and particle metrics;
+- ``params.preset``: a packaged scene configuration (``twin_core/scenes/configs/<preset>.yaml``)
+  the other parameters override;
 - ``params.analysis = true``: the scene's full run and analysis
   (``twin_core.scenes.<scene>.run``: results.json, grid fields for the compartment model,
   feed-factor curves...) into the job directory; the result lists its files and scalar results.
@@ -53,6 +55,33 @@ from services.bus import Publisher
 from services.service import Service
 
 log = logging.getLogger(__name__)
+
+
+#: packaged scene configurations a request may start from (``params.preset``)
+PRESETS = Path(__file__).resolve().parents[1] / "twin_core" / "scenes" / "configs"
+
+
+def scene_data(scene: str, job_id: str, params: dict[str, Any], seed: int | None) -> dict[str, Any]:
+    """The scene configuration of a request: ``params.preset`` (the name of a packaged scene
+    configuration, e.g. ``blender_small``) overridden by the other parameters."""
+    import yaml
+
+    params = dict(params)
+    preset = params.pop("preset", None)
+    data: dict[str, Any] = {}
+    if preset is not None:
+        names = sorted(p.stem for p in PRESETS.glob("*.yaml"))
+        if preset not in names:
+            raise ValueError(f"params.preset must be one of {names}, got {preset!r}")
+        data = yaml.safe_load((PRESETS / f"{preset}.yaml").read_text())
+        if data.get("scene") != scene:
+            raise ValueError(
+                f"params.preset {preset!r} is a {data.get('scene')!r} scene, not {scene!r}"
+            )
+    data.update({"scene": scene, "name": job_id, **params})
+    if seed is not None:
+        data["seed"] = seed
+    return data
 
 
 class DemService(Service):
@@ -224,10 +253,7 @@ class DemService(Service):
         analysis = bool(params.pop("analysis", False))
         build_model = bool(params.pop("build_model", True))
         rpm = params.pop("rpm", None)
-        data: dict[str, Any] = {"scene": req.scene, "name": req.job_id, **params}
-        if req.seed is not None:
-            data["seed"] = req.seed
-        cfg = load_scene(data)
+        cfg = load_scene(scene_data(req.scene, req.job_id, params, req.seed))
         module = importlib.import_module(f"twin_core.scenes.{cfg.scene}")
         needs_rpm = cfg.scene == "blender"
         if needs_rpm and rpm is None:

@@ -14,7 +14,8 @@ random password per run (:class:`RunCredentials`); the router accepts only those
   configured sensor's concentration, the plant's events and blade speeds, the blender its
   predictions and the model it predicts with, the dem service its jobs' outputs and section
   models, ...; and its own health, liveliness token and ping under ``twin/<line>/service/<identity>/``;
-- ``operator`` may request DEM jobs, which the ``dem`` service alone serves.
+- ``operator`` may request DEM jobs, which the ``dem`` service alone serves; the ``blender``
+  may put a request (a section run at a blade speed outside its table of models).
 
 Where the passwords are: the router's dictionary in memory (an anonymous memory file on Linux;
 elsewhere a file readable by its owner only, removed as soon as the router has read it); a
@@ -54,7 +55,11 @@ def published_keys(spec: LineSpec, identity: str) -> list[str]:
     line = spec.name
     outputs = {
         "oos": [keys.oos_alert(line), keys.divert_command(line)],
-        "blender": [keys.predicted_concentration(line, "outlet"), keys.blender_model_in_use(line)],
+        "blender": [
+            keys.predicted_concentration(line, "outlet"),
+            keys.blender_model_in_use(line),
+            keys.dem_requests(line),
+        ],
         "rtd": [
             keys.rtd_estimate(line),
             keys.rtd_skipped(line),

@@ -207,3 +207,35 @@ def test_a_dem_jobs_section_model_is_published_and_swapped_in(tmp_path, model_di
     ]
     assert svc.core.kernel.table.speeds == [50.0, 75.0, 100.0]
     assert "75 rpm x 1.00" in svc.model_pub.sent[1].name
+
+
+def test_a_blade_speed_outside_the_table_requests_a_section_run(tmp_path, model_dir):
+    """150 rpm is beyond the table's 50-100 rpm: the blender extrapolates and, the dem service
+    being in the line, requests one section run there with the packaged preset (once per speed);
+    the dem service builds that request's scene from the preset (the packaged blender_small
+    configuration at 150 rpm)."""
+    from schemas.dem_scene import load_scene
+    from services.dem import scene_data
+
+    spec = spec_for(tmp_path, model_dir)
+    spec.services = ["feeder", "blender", "oos", "dem"]
+    svc = blender(spec, tmp_path / "b")
+    sent = []
+    svc.publish_request = sent.append
+    key = keys.blender_drive("line1")
+    for t, rpm in ((10.0, 90.0), (20.0, 150.0), (30.0, 150.2), (40.0, 25.0)):
+        svc.handle(key, BlenderDrive(t=t, seq=int(t), blade_speed_rpm=rpm))
+    assert [(r.job_id, r.params["rpm"], r.t) for r in sent] == [
+        ("blender_150rpm", 150.0, 20.0),
+        ("blender_25rpm", 25.0, 40.0),
+    ]
+    assert svc.counters.get("dem_runs_requested") == 2
+    req = sent[0]
+    params = {k: v for k, v in req.params.items() if k not in ("rpm", "analysis")}
+    scene = load_scene(scene_data(req.scene, req.job_id, params, None))
+    assert scene.n_per_type == 300 and scene.radius == 0.0025
+    assert req.duration_s == pytest.approx(scene.settle_s + scene.mix_s)
+    with pytest.raises(ValueError, match="params.preset must be one of"):
+        scene_data("blender", "j", {"preset": "../etc/passwd"}, None)
+    with pytest.raises(ValueError, match="is a 'drawdown' scene"):
+        scene_data("blender", "j", {"preset": "drawdown_small"}, None)
