@@ -141,7 +141,7 @@ class BlenderService(Service):
         if any(abs(rpm - r) <= 0.02 * r for r in self._requested):
             return  # requested already (within 2 %)
         from schemas.dem_scene import load_scene
-        from services.dem import scene_data
+        from twin_core.scenes.presets import scene_data
 
         self._requested.add(rpm)
         job = f"blender_{round(rpm, 1):g}rpm"

@@ -53,35 +53,9 @@ from schemas.line import LineSpec
 from schemas.messages import BlenderModelUpdate, DemJobProgress, DemJobRequest, DemJobResult
 from services.bus import Publisher
 from services.service import Service
+from twin_core.scenes.presets import scene_data
 
 log = logging.getLogger(__name__)
-
-
-#: packaged scene configurations a request may start from (``params.preset``)
-PRESETS = Path(__file__).resolve().parents[1] / "twin_core" / "scenes" / "configs"
-
-
-def scene_data(scene: str, job_id: str, params: dict[str, Any], seed: int | None) -> dict[str, Any]:
-    """The scene configuration of a request: ``params.preset`` (the name of a packaged scene
-    configuration, e.g. ``blender_small``) overridden by the other parameters."""
-    import yaml
-
-    params = dict(params)
-    preset = params.pop("preset", None)
-    data: dict[str, Any] = {}
-    if preset is not None:
-        names = sorted(p.stem for p in PRESETS.glob("*.yaml"))
-        if preset not in names:
-            raise ValueError(f"params.preset must be one of {names}, got {preset!r}")
-        data = yaml.safe_load((PRESETS / f"{preset}.yaml").read_text())
-        if data.get("scene") != scene:
-            raise ValueError(
-                f"params.preset {preset!r} is a {data.get('scene')!r} scene, not {scene!r}"
-            )
-    data.update({"scene": scene, "name": job_id, **params})
-    if seed is not None:
-        data["seed"] = seed
-    return data
 
 
 class DemService(Service):

@@ -215,7 +215,7 @@ def test_a_blade_speed_outside_the_table_requests_a_section_run(tmp_path, model_
     the dem service builds that request's scene from the preset (the packaged blender_small
     configuration at 150 rpm)."""
     from schemas.dem_scene import load_scene
-    from services.dem import scene_data
+    from twin_core.scenes.presets import scene_data
 
     spec = spec_for(tmp_path, model_dir)
     spec.services = ["feeder", "blender", "oos", "dem"]
