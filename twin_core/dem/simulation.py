@@ -160,7 +160,7 @@ class Simulation:
         self._tri_nb = np.zeros((2, cap, ktri), np.int64)
         self._thist = np.zeros((2, cap, ktri, 3))
         self._ntri = np.zeros((2, cap), np.int64)
-        self._tri_tmp = np.zeros((cap, ktri, 5))
+        self._tri_tmp = np.zeros((cap, ktri, 8))
 
     def _resize(
         self, cap: int | None = None, kown: int | None = None, krev: int | None = None,

@@ -108,6 +108,40 @@ def test_sphere_resting_on_mesh_feels_one_contact(xy):
     assert R - sim.pos[0, 2] == pytest.approx(d_eq, rel=0.02)
 
 
+_SEAM_L = 0.04  # periodic length (x) of the seam tests
+_SEAM_W = 0.04  # floor width (y)
+
+
+@pytest.mark.parametrize(
+    "x",
+    [0.5 * _SEAM_L, 0.9 * _SEAM_L, 0.99 * _SEAM_L, 0.1 * _SEAM_L, 0.01 * _SEAM_L, 0.0004],
+)
+@pytest.mark.parametrize("side", [-1, 1])
+def test_sphere_on_full_length_periodic_floor_near_seam_is_held(x, side):
+    """A floor spanning the whole periodic length in two triangles (a wall extruded along the
+    periodic axis, like the blender trough): a sphere resting on it anywhere, next to the seam
+    included, on either side of the diagonal, is held at the equilibrium overlap of one Hertz
+    contact (force balance m g, as on an analytic plane). With the image of the sphere taken
+    about each triangle's centroid, a sphere within a third of the period of the seam saw the
+    triangle under it only through its far edge and fell through the floor."""
+    L, W = _SEAM_L, _SEAM_W
+    v = np.array([[0, 0, 0], [0, W, 0], [L, W, 0], [L, 0, 0]], float)
+    t = np.array([[0, 1, 2], [0, 2, 3]])  # centroids at x = L/3 and 2L/3; diagonal y = W x / L
+    sim = Simulation((0, -0.01, -0.005), (L, W + 0.01, 0.01), periodic=(True, False, False),
+                     materials=[_mat(e=0.1)])  # fmt: skip
+    sim.add_mesh(v, t)
+    y = W * x / L + side * 2.5 * R
+    y = min(max(y, 2 * R), W - 2 * R)
+    sim.add_particles([[x, y, R - 1e-6]], R)
+    sim.run(0.05)
+    assert len(sim.ids) == 1
+    mg = sim.mass[0] * G
+    e_star = sim._pt[0, 0, 0]
+    d_eq = (mg / (4.0 / 3.0 * e_star * math.sqrt(R))) ** (2.0 / 3.0)
+    assert abs(sim.vel[0, 2]) < 1e-5
+    assert R - sim.pos[0, 2] == pytest.approx(d_eq, rel=0.02)
+
+
 def test_mesh_activation_window_and_rotation():
     """A mesh plate removed at t_off releases the particle (the seed's separating plate); a
     rotating mesh is where RotationMotion puts it (Rodrigues rotation, 60 rpm = 1 turn/s)."""
