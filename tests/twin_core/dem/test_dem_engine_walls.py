@@ -189,6 +189,24 @@ def test_plane_switched_off_and_on_by_activation_window():
         sim.set_plane_active(5, (0.0, 1.0))
 
 
+def test_mesh_switched_off_between_runs_releases_sphere():
+    """``set_mesh_active`` ends a mesh's window from now on (the plate of a drawdown test or a
+    silo plug pulled at a time chosen during the run): the sphere resting on it falls freely,
+    ``z = z0 - g t^2 / 2`` (from rest; within 2 % after 40 ms)."""
+    v, t = _square_mesh(0.0)
+    sim = Simulation((0, 0, -0.02), (0.01, 0.01, 0.01), materials=[_mat(e=0.1)])
+    mid = sim.add_mesh(v, t)
+    sim.add_particles([[0.005, 0.005, R - 1e-6]], R)
+    sim.run(0.03)
+    z0 = sim.pos[0, 2]
+    sim.set_mesh_active(mid, (-math.inf, sim.t))
+    sim.vel[0] = 0.0
+    sim.run(0.04)
+    assert z0 - sim.pos[0, 2] == pytest.approx(0.5 * G * 0.04**2, rel=0.02)
+    with pytest.raises(ValueError, match="mesh_id"):
+        sim.set_mesh_active(3, (0.0, 1.0))
+
+
 def test_drum_spun_up_after_creation_carries_sphere_to_friction_angle():
     """A drum (primitive cylinder, axis x) created at rest holds a sphere at its bottom; spun up
     through ``set_cylinder_rpm`` it drags the sphere (rotation held by a large rolling
