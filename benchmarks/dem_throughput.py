@@ -1,7 +1,8 @@
 """DEM engine throughput: particle-steps per second on a settled bed and an agitated (drum) bed.
 
 Case (the seed's blender parameters, docs/dem_engine.md): spheres R = 1 mm, 1500 kg/m3, G = 2e6 Pa,
-nu = 0.25, mu_s = 0.5, mu_r = 0.01, e = 0.1, dt = 20 % Rayleigh (1.8757e-5 s); box periodic in x,
+nu = 0.25, mu_s = 0.5, mu_r = 0.01, e = 0.1 with Tsuji's (uncorrected) restitution mapping, as
+LIGGGHTS' ``hertz`` model, dt = 20 % Rayleigh (1.8757e-5 s); box periodic in x,
 80 x 80 mm cross-section; 40 mm long for 6,000 spheres and stretched along x in proportion for
 larger N (50,000 spheres do not fit in 40 x 80 x 80 mm: that is a solid fraction of 0.82).
 
@@ -25,7 +26,7 @@ import time
 import numba
 import numpy as np
 
-from twin_core.dem import Material, Simulation
+from twin_core.dem import Material, MaterialTable, Simulation
 
 R = 1e-3
 MAT = Material(1500.0, 2e6, 0.25, friction=0.5, rolling_friction=0.01, restitution=0.1)
@@ -53,12 +54,16 @@ def lattice(n: int, lx: float, case: str, spacing: float = 2.05e-3) -> np.ndarra
     return p[:n]
 
 
-def make_sim(n: int, case: str, skin: float | None = None, seed: int = 0) -> Simulation:
-    """The benchmark system (not yet settled)."""
+def make_sim(
+    n: int, case: str, skin: float | None = None, seed: int = 0, damping: str = "tsuji"
+) -> Simulation:
+    """The benchmark system (not yet settled). ``damping="tsuji"`` (default): the uncorrected
+    restitution-to-dashpot mapping of LIGGGHTS' ``hertz`` model, so that the two codes run the
+    same contact law; ``"corrected"``: the engine's default (docs/dem_engine.md)."""
     lx = box_length(n)
     sim = Simulation(
-        (0, 0, 0), (lx, 0.08, 0.08), periodic=(True, False, False), materials=[MAT], dt=DT,
-        skin=skin,
+        (0, 0, 0), (lx, 0.08, 0.08), periodic=(True, False, False),
+        materials=MaterialTable([MAT], damping=damping), dt=DT, skin=skin,
     )  # fmt: skip
     if case == "bed":
         sim.add_box((0, 0, 0), (lx, 0.08, 0.08))

@@ -1,6 +1,8 @@
 """Side-by-side throughput of our DEM engine and LIGGGHTS (single process) on the same case.
 
-Both start from the same loose lattice (``benchmarks/dem_throughput.py``), settle for the same
+Both run the same contact law (Hertz-Mindlin, Tsuji damping from the same restitution:
+``make_sim`` gives our side ``damping="tsuji"``, not the engine's corrected default) and start
+from the same loose lattice (``benchmarks/dem_throughput.py``), settle for the same
 number of steps (not timed), then run ``--steps`` timed steps: LIGGGHTS' own "Loop time" of its
 second ``run`` against our wall time of the same number of steps, one numba thread (and
 optionally two), with each pair scheme asked for (``Simulation.pair_scheme``: ``auto`` picks the

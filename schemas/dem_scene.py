@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import yaml
-from pydantic import Field, TypeAdapter
+from pydantic import Field, TypeAdapter, model_validator
 
 from schemas.base import Fraction, NonNegative, Positive, StrictModel
 
@@ -48,6 +48,11 @@ class MaterialConfig(StrictModel):
     wall_density: Positive = Field(7800.0, description="wall (steel) density, kg/m^3")
     wall_shear_modulus: Positive = Field(7e10, description="wall (steel) shear modulus, Pa")
     wall_poisson: float = Field(0.3, ge=0.0, lt=0.5, description="wall Poisson ratio")
+    walls_of_particle_material: bool = Field(
+        False,
+        description="walls take the particle's density, shear modulus and Poisson ratio "
+        "instead of the wall_* (steel) values (the pw_* coefficients still apply)",
+    )
     damping: Literal["tsuji", "corrected"] = Field(
         "tsuji",
         description="restitution -> dashpot mapping: 'tsuji' (beta = ln e / sqrt(ln^2 e + pi^2), "
@@ -186,6 +191,37 @@ class SiloScene(SceneBase):
     flow_bin_s: Positive = Field(0.05, description="bin of the discharge rate, s")
     sensor_interval_s: Positive = Field(0.002, description="interval of the sensors, s")
     frame_interval_s: Positive = Field(0.1, description="frames for snapshots, s")
+    fill: Literal["lattice", "poured"] = Field(
+        "lattice",
+        description="'lattice': particles placed on a lattice in the silo at t = 0; 'poured': "
+        "inserted at random in the top quarter of the silo at a constant rate over pour_s",
+    )
+    pour_s: Positive | None = Field(
+        None, description="duration of a poured fill, s (default: half of settle_s)"
+    )
+    wall: Literal["mesh", "cylinder"] = Field(
+        "mesh",
+        description="side wall: a triangulated cylinder ('mesh') or the engine's primitive "
+        "cylinder wall ('cylinder', exact circle)",
+    )
+    fit_window_s: tuple[NonNegative, Positive] | None = Field(
+        None,
+        description="(start, end) of the discharge-rate fit, s after the plug is removed "
+        "(default: the last 70 % of discharge_s)",
+    )
+
+    @model_validator(mode="after")
+    def _windows_fit(self) -> SiloScene:
+        if self.fit_window_s is not None:
+            a, b = self.fit_window_s
+            if not a < b <= self.discharge_s:
+                raise ValueError(
+                    f"fit_window_s must satisfy start < end <= discharge_s = {self.discharge_s}, "
+                    f"got {self.fit_window_s}"
+                )
+        if self.pour_s is not None and self.pour_s > self.settle_s:
+            raise ValueError(f"pour_s must be <= settle_s = {self.settle_s}, got {self.pour_s}")
+        return self
 
 
 DemScene = Annotated[

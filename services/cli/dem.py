@@ -1,6 +1,7 @@
 """``twin dem run SCENE.yaml [--out DIR] [--resume] [--threads N]``: run a DEM scene of the seed
 (blender section, drawdown test, feeder, silo) from its config file and write results, fields,
-frames, STL geometry and PNG figures."""
+frames, STL geometry and PNG figures. ``twin dem warmup``: compile the engine's kernels into
+numba's cache, saying what it compiles (``make`` runs it after installing)."""
 
 from __future__ import annotations
 
@@ -24,6 +25,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("--threads", type=int, default=None, help="numba threads (default: all)")
     r.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     r.set_defaults(func=cmd_run)
+    w = sub.add_parser(
+        "warmup", help="compile the engine's numba kernels into the cache (once per install)"
+    )
+    w.set_defaults(func=cmd_warmup)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
 
@@ -44,4 +49,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     out = args.out or Path("out") / "dem" / cfg.name
     summary = run_scene(cfg, out, resume=args.resume, progress=not args.no_progress)
     print(json.dumps(summary, indent=1, default=str))
+    return 0
+
+
+def cmd_warmup(args: argparse.Namespace) -> int:
+    from twin_core.dem.warmup import compile_kernels
+
+    times = compile_kernels(report=log.info)
+    print(json.dumps({"total_s": round(sum(times.values()), 2), "phases_s": times}, indent=1))
     return 0

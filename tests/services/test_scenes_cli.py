@@ -1,8 +1,10 @@
-"""`twin dem run` end to end on a tiny silo: results, STL, frames, figures, resume."""
+"""`twin dem run` end to end on a tiny silo: results, STL, frames, figures, resume; `twin dem
+warmup`."""
 
 from __future__ import annotations
 
 import json
+import logging
 
 import numba
 import pytest
@@ -11,6 +13,7 @@ import yaml
 from services.cli.main import main
 from twin_core.dem.frames import FrameReader
 from twin_core.dem.stl import read_stl
+from twin_core.dem.warmup import compile_kernels, kernel_cache_counts
 
 pytestmark = pytest.mark.slow
 
@@ -55,3 +58,18 @@ def test_cli_runs_scene_and_resumes(tmp_path):
         assert main(["dem", "run", str(bad), "--out", str(out)]) == 2
     finally:
         numba.set_num_threads(n)
+
+
+def test_cli_warmup_names_each_kernel_phase_before_compiling(capsys, caplog):
+    """`twin dem warmup` logs what it compiles before each phase (a cold cache otherwise stalls
+    the first step silently) and prints the seconds per phase; once done, running the phases
+    again compiles nothing."""
+    caplog.set_level(logging.INFO)
+    assert main(["dem", "warmup"]) == 0
+    phases = list(json.loads(capsys.readouterr().out)["phases_s"])
+    assert len(phases) == 5
+    starts = [r.getMessage() for r in caplog.records if r.getMessage().endswith(" ...")]
+    assert [m.split(": ", 1)[1].removesuffix(" ...") for m in starts] == phases
+    compiled = kernel_cache_counts()[1]
+    compile_kernels()
+    assert kernel_cache_counts()[1] == compiled

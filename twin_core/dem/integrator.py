@@ -148,10 +148,10 @@ def gather_pass(
         else:
             fx, fy, fz, tx, ty, tz = gather_pair_slots(i, P[i, 9], pf, nrev, rev_o, rev_k, nown)
         fx, fy, fz, tx, ty, tz = add_plane_contacts(
-            i, P, IA, planes, whist, pt, dt, fx, fy, fz, tx, ty, tz
+            i, P, IA, planes, whist, pt, dt, t, fx, fy, fz, tx, ty, tz
         )
         fx, fy, fz, tx, ty, tz = add_cylinder_contacts(
-            i, P, IA, cyls, npl, whist, pt, dt, fx, fy, fz, tx, ty, tz
+            i, P, IA, cyls, npl, whist, pt, dt, t, fx, fy, fz, tx, ty, tz
         )
         fx, fy, fz, tx, ty, tz = add_mesh_contacts(
             i, P, IA, ntri, tri_nb, thist, tri_tmp, tri_x, tri_mesh, mesh_par, pt, dom, per, dt,

@@ -3,7 +3,8 @@ wall/gran``): triangle geometry, prescribed mesh motion and the contacts of a sp
 candidate triangles of its list (built in :mod:`twin_core.dem.partition`).
 
 - Geometry: closest point of a triangle to a point with its feature (face, edge, vertex); the
-  image of a particle nearest to a triangle on periodic axes (minimum image about the centroid).
+  image of a particle nearest to a triangle on periodic axes (of the images that can come
+  close to it, the one whose closest point is nearest).
 - Motion: ``mesh_par`` rows (kind 0 static, 1 rotation, 2 translation; axis point, axis, omega,
   velocity, motion window, activation window, material); rotation by Rodrigues' formula
   ``x' = a + p cos th + (u x p) sin th + u (u.p)(1 - cos th)``, ``p = x0 - a``.
@@ -27,7 +28,6 @@ import math
 from numba import njit, prange
 
 from .contact import add_wall_contact, clear_history
-from .space import min_image
 
 __all__ = [
     "add_mesh_contacts",
@@ -35,7 +35,7 @@ __all__ = [
     "dist_point_tri",
     "max_tri_disp2",
     "mesh_state",
-    "tri_periodic_point",
+    "nearest_image_contact",
     "update_mesh",
 ]
 
@@ -90,16 +90,68 @@ def closest_point_triangle(px, py, pz, tri):
     )
 
 
+@njit(cache=True, inline="always")
+def _axis_images(p, t0, t1, t2, length, periodic):
+    """The two images ``p + k L`` (k in -1, 0, 1) of a coordinate nearest to the interval
+    spanned by a triangle's coordinates t0, t1, t2 along one axis: (shift, gap) of the nearest
+    and of the second nearest (gap ``inf`` along a closed axis, where only ``p`` exists)."""
+    lo = min(t0, t1, t2)
+    hi = max(t0, t1, t2)
+    if not periodic:
+        return 0.0, 0.0, 0.0, math.inf
+    s0 = s1 = 0.0
+    g0 = g1 = math.inf
+    for k in range(-1, 2):
+        q = p + k * length
+        g = max(lo - q, q - hi, 0.0)
+        if g < g0:
+            s1, g1 = s0, g0
+            s0, g0 = k * length, g
+        elif g < g1:
+            s1, g1 = k * length, g
+    return s0, g0, s1, g1
+
+
+@njit(cache=True, inline="always")
+def _pick(k, a, b):
+    """``a`` for k == 0, ``b`` otherwise."""
+    return a if k == 0 else b
+
+
 @njit(cache=True)
-def tri_periodic_point(px, py, pz, tri, dom, per):
-    """Image of p nearest to the triangle centroid (minimum image on periodic axes)."""
-    gx = (tri[0] + tri[3] + tri[6]) / 3.0
-    gy = (tri[1] + tri[4] + tri[7]) / 3.0
-    gz = (tri[2] + tri[5] + tri[8]) / 3.0
-    qx = gx + min_image(px - gx, dom[6], per[0] != 0)
-    qy = gy + min_image(py - gy, dom[7], per[1] != 0)
-    qz = gz + min_image(pz - gz, dom[8], per[2] != 0)
-    return qx, qy, qz
+def nearest_image_contact(px, py, pz, tri, dom, per):
+    """Image q of point p nearest to triangle ``tri`` and its closest point c on the triangle:
+    (qx, qy, qz, cx, cy, cz, feature), feature as in :func:`closest_point_triangle`.
+
+    Along a periodic axis a triangle can come close to two images of p (a wall that spans the
+    whole period, e.g. a trough extruded along the periodic axis): both are tried, the second
+    only when its gap along the axis (a lower bound of its distance) is below the distance
+    found so far. Minimum image about the triangle's centroid instead picks, for p within a
+    third of the period of the seam, an image outside a full-length triangle and misses the
+    contact.
+    """
+    sx0, gx0, sx1, gx1 = _axis_images(px, tri[0], tri[3], tri[6], dom[6], per[0] != 0)
+    sy0, gy0, sy1, gy1 = _axis_images(py, tri[1], tri[4], tri[7], dom[7], per[1] != 0)
+    sz0, gz0, sz1, gz1 = _axis_images(pz, tri[2], tri[5], tri[8], dom[8], per[2] != 0)
+    best = math.inf
+    out = (px, py, pz, px, py, pz, 0)
+    for a in range(2):
+        gx = _pick(a, gx0, gx1)
+        for b in range(2):
+            gy = _pick(b, gy0, gy1)
+            for c in range(2):
+                gz = _pick(c, gz0, gz1)
+                if gx * gx + gy * gy + gz * gz >= best:
+                    continue
+                qx = px + _pick(a, sx0, sx1)
+                qy = py + _pick(b, sy0, sy1)
+                qz = pz + _pick(c, sz0, sz1)
+                cx, cy, cz, feat = closest_point_triangle(qx, qy, qz, tri)
+                d2 = (qx - cx) ** 2 + (qy - cy) ** 2 + (qz - cz) ** 2
+                if d2 < best:
+                    best = d2
+                    out = (qx, qy, qz, cx, cy, cz, feat)
+    return out
 
 
 @njit(cache=True)
@@ -205,8 +257,7 @@ def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tm
         if not (mesh_par[mesh, 13] <= t < mesh_par[mesh, 14]):
             clear_history(thist, i, k)
             continue
-        qx, qy, qz = tri_periodic_point(x, y, z, tri, dom, per)
-        cpx, cpy, cpz, feat = closest_point_triangle(qx, qy, qz, tri)
+        qx, qy, qz, cpx, cpy, cpz, feat = nearest_image_contact(x, y, z, tri, dom, per)
         ddx, ddy, ddz = cpx - qx, cpy - qy, cpz - qz
         dist = math.sqrt(ddx * ddx + ddy * ddy + ddz * ddz)
         if dist >= ri or dist == 0.0:
@@ -217,6 +268,9 @@ def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tm
         tri_tmp[i, k, 2] = cpz
         tri_tmp[i, k, 3] = dist
         tri_tmp[i, k, 4] = feat
+        tri_tmp[i, k, 5] = ddx / dist
+        tri_tmp[i, k, 6] = ddy / dist
+        tri_tmp[i, k, 7] = ddz / dist
         ncont += 1
     return ncont
 
@@ -271,10 +325,7 @@ def _add_triangle_contact(i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_pa
     q = tri_nb[i, k]
     mesh = tri_mesh[q]
     dist = tri_tmp[i, k, 3]
-    qx, qy, qz = tri_periodic_point(P[i, 0], P[i, 1], P[i, 2], tri_x[q], dom, per)
-    nx = (cpx - qx) / dist
-    ny = (cpy - qy) / dist
-    nz = (cpz - qz) / dist
+    nx, ny, nz = tri_tmp[i, k, 5], tri_tmp[i, k, 6], tri_tmp[i, k, 7]
     vwx, vwy, vwz, wwx, wwy, wwz = _wall_motion(mesh_par, mesh, t, cpx, cpy, cpz)
     return add_wall_contact(
         P, IA, i, nx, ny, nz, P[i, 9] - dist, vwx, vwy, vwz, wwx, wwy, wwz,

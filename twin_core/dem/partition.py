@@ -26,7 +26,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .meshes import dist_point_tri, max_tri_disp2, tri_periodic_point, update_mesh
+from .meshes import max_tri_disp2, nearest_image_contact, update_mesh
 from .space import min_image
 
 __all__ = ["axis_cells", "cell_of", "rebuild", "rebuild_due"]
@@ -216,8 +216,8 @@ def _build_tri(
         for s in range(tstart[c], tstart[c + 1]):
             q = tcell[s]
             tri = tri_x[q]
-            qx, qy, qz = tri_periodic_point(x, y, z, tri, dom, per)
-            if dist_point_tri(qx, qy, qz, tri) < r + skin:
+            qx, qy, qz, cx, cy, cz, _ = nearest_image_contact(x, y, z, tri, dom, per)
+            if (qx - cx) ** 2 + (qy - cy) ** 2 + (qz - cz) ** 2 < (r + skin) ** 2:
                 if cnt < kmax:
                     _append_carried(tri_nb_new, thist_new, i, cnt, q, tri_nb_old, ntri_old,
                                     thist_old, oi, q, 1.0)  # fmt: skip

@@ -32,6 +32,24 @@ from .space import NPC
 __all__ = ["Simulation"]
 
 _CHECKPOINT_VERSION = 1
+_PLANE_COLS = 9  # point, normal, material, activation window (walls.py)
+_CYL_COLS = 14  # point, axis, radius, side, omega, material, axial range, activation window
+
+
+def _window(active: Sequence[float], name: str = "active") -> tuple[float, float]:
+    """An activation window ``(t_on, t_off)`` with ``t_on < t_off``."""
+    if len(active) != 2 or not float(active[1]) > float(active[0]):
+        raise ValueError(f"{name} must be (t_on, t_off) with t_on < t_off, got {active}")
+    return float(active[0]), float(active[1])
+
+
+def _with_window(table: np.ndarray, ncols: int) -> np.ndarray:
+    """A wall table of a checkpoint written before walls had activation windows, widened to
+    ``ncols`` columns with an always-active window."""
+    if table.shape[1] == ncols:
+        return table
+    pad = np.tile([-math.inf, math.inf], (table.shape[0], 1))
+    return np.hstack([table.reshape(-1, ncols - 2), pad])
 
 
 def _vec3(v: Sequence[float], name: str) -> np.ndarray:
@@ -122,8 +140,8 @@ class Simulation:
         self._forces_stale = True
         self._warned_resolution = False
         self._alloc(16, kown=8, krev=8, ktri=4)
-        self._planes = np.zeros((0, 7))
-        self._cyls = np.zeros((0, 12))
+        self._planes = np.zeros((0, _PLANE_COLS))
+        self._cyls = np.zeros((0, _CYL_COLS))
         self._whist = np.zeros((16, 0, 3))
         self._tri_x0 = np.zeros((0, 9))
         self._tri_x = np.zeros((0, 9))
@@ -160,7 +178,7 @@ class Simulation:
         self._tri_nb = np.zeros((2, cap, ktri), np.int64)
         self._thist = np.zeros((2, cap, ktri, 3))
         self._ntri = np.zeros((2, cap), np.int64)
-        self._tri_tmp = np.zeros((cap, ktri, 5))
+        self._tri_tmp = np.zeros((cap, ktri, 8))
 
     def _resize(
         self, cap: int | None = None, kown: int | None = None, krev: int | None = None,
@@ -319,13 +337,16 @@ class Simulation:
 
     def potential_energy(self) -> float:
         """Gravitational potential energy ``-sum m g.x`` plus the Hertz elastic energy of contacts
-        with particles, planes and cylinders (J)."""
+        with particles and the planes and cylinders active now (J)."""
         n = self._n
         pg = -float(np.sum(self._P[:n, 10] * (self._P[:n, 0:3] @ self._grav)))
         self._ensure_lists()
         c = int(self._cur[0])
+        t = self.t
+        planes = self._planes[(self._planes[:, 7] <= t) & (t < self._planes[:, 8])]
+        cyls = self._cyls[(self._cyls[:, 12] <= t) & (t < self._cyls[:, 13])]
         pe = elastic_energy(
-            n, self._P, self._IA, self._nb[c], self._nown[c], self._planes, self._cyls,
+            n, self._P, self._IA, self._nb[c], self._nown[c], planes, cyls,
             self._pt, self._dom, self._per,
         )  # fmt: skip
         return pg + float(pe)
@@ -500,16 +521,24 @@ class Simulation:
         return k
 
     def add_plane(
-        self, point: Sequence[float], normal: Sequence[float], material_id: int = 0
+        self,
+        point: Sequence[float],
+        normal: Sequence[float],
+        material_id: int = 0,
+        active: tuple[float, float] = (-math.inf, math.inf),
     ) -> int:
-        """Infinite plane through ``point``; particles live on the side ``normal`` points to."""
+        """Infinite plane through ``point``; particles live on the side ``normal`` points to.
+
+        ``active=(t_on, t_off)``: the plane exerts forces only for ``t_on <= t < t_off`` (also
+        :meth:`set_plane_active`). Returns the plane id."""
         p = _vec3(point, "point")
+        t_on, t_off = _window(active)
         nrm = _vec3(normal, "normal")
         if not np.linalg.norm(nrm) > 0:
             raise ValueError(f"normal must be non-zero, got {normal}")
         self._check_mat(material_id)
         nrm = nrm / np.linalg.norm(nrm)
-        self._planes = np.vstack([self._planes, np.r_[p, nrm, material_id][None, :]])
+        self._planes = np.vstack([self._planes, np.r_[p, nrm, material_id, t_on, t_off][None, :]])
         # plane histories come first in the wall-history table: shift cylinder columns
         npl = self._planes.shape[0]
         w = np.zeros((self._cap, npl + self._cyls.shape[0], 3))
@@ -539,12 +568,16 @@ class Simulation:
         inside: bool = True,
         rpm: float = 0.0,
         extent: tuple[float, float] = (-math.inf, math.inf),
+        active: tuple[float, float] = (-math.inf, math.inf),
     ) -> int:
         """Cylindrical wall (axis through ``point`` along ``axis``) of ``radius``.
 
         ``inside``: particles inside (a drum) or outside (a shaft). ``rpm``: wall rotation about the
-        axis (drum); ``extent``: axial range (from ``point``) where the wall exists.
+        axis (drum; changed later with :meth:`set_cylinder_rpm`); ``extent``: axial range (from
+        ``point``) where the wall exists; ``active=(t_on, t_off)``: the wall exerts forces only
+        for ``t_on <= t < t_off`` (also :meth:`set_cylinder_active`). Returns the cylinder id.
         """
+        t_on, t_off = _window(active)
         p = _vec3(point, "point")
         u = _vec3(axis, "axis")
         if not np.linalg.norm(u) > 0:
@@ -554,10 +587,42 @@ class Simulation:
         self._check_mat(material_id)
         u = u / np.linalg.norm(u)
         row = np.r_[p, u, radius, 1.0 if inside else -1.0, 2 * math.pi * rpm / 60.0, material_id,
-                    extent[0], extent[1]]  # fmt: skip
+                    extent[0], extent[1], t_on, t_off]  # fmt: skip
         self._cyls = np.vstack([self._cyls, row[None, :]])
         self._set_n_walls()
         return self._cyls.shape[0] - 1
+
+    def set_plane_active(self, plane_id: int, active: tuple[float, float]) -> None:
+        """Activation window ``(t_on, t_off)`` of plane ``plane_id`` (switch a plane on or off:
+        ``(sim.t, inf)`` or ``(-inf, sim.t)``); takes effect from the next step."""
+        self._planes[self._wall_row(self._planes, plane_id, "plane_id"), 7:9] = _window(active)
+        self._forces_stale = True
+
+    def set_cylinder_active(self, cylinder_id: int, active: tuple[float, float]) -> None:
+        """Activation window ``(t_on, t_off)`` of cylinder ``cylinder_id``; from the next step."""
+        row = self._wall_row(self._cyls, cylinder_id, "cylinder_id")
+        self._cyls[row, 12:14] = _window(active)
+        self._forces_stale = True
+
+    def set_cylinder_rpm(self, cylinder_id: int, rpm: float) -> None:
+        """Rotation speed (rpm, about the cylinder's axis) of cylinder ``cylinder_id`` from the
+        next step on: start, change or stop a drum's rotation between runs."""
+        if not math.isfinite(rpm):
+            raise ValueError(f"rpm must be finite, got {rpm}")
+        row = self._wall_row(self._cyls, cylinder_id, "cylinder_id")
+        self._cyls[row, 8] = 2 * math.pi * rpm / 60.0
+        self._forces_stale = True
+
+    def cylinder_rpm(self, cylinder_id: int) -> float:
+        """Current rotation speed (rpm) of cylinder ``cylinder_id``."""
+        row = self._wall_row(self._cyls, cylinder_id, "cylinder_id")
+        return float(self._cyls[row, 8] * 60.0 / (2 * math.pi))
+
+    @staticmethod
+    def _wall_row(table: np.ndarray, wall_id: int, name: str) -> int:
+        if not 0 <= wall_id < table.shape[0]:
+            raise ValueError(f"{name} must be in [0, {table.shape[0]}), got {wall_id}")
+        return int(wall_id)
 
     def add_mesh(
         self,
@@ -581,8 +646,7 @@ class Simulation:
             raise ValueError(f"triangles must be an integer array (T, 3), got {tr.shape}")
         if tr.size and (tr.min() < 0 or tr.max() >= v.shape[0]):
             raise ValueError(f"triangles must index vertices in [0, {v.shape[0]})")
-        if not active[1] > active[0]:
-            raise ValueError(f"active must satisfy t_on < t_off, got {active}")
+        active = _window(active)
         self._check_mat(material_id)
         mid = len(self._meshes)
         mp = motion.params() if motion is not None else np.zeros(13)
@@ -603,6 +667,15 @@ class Simulation:
         if self._n:
             self._rebuild()
         return mid
+
+    def set_mesh_active(self, mesh_id: int, active: tuple[float, float]) -> None:
+        """Activation window ``(t_on, t_off)`` of mesh ``mesh_id``; from the next step."""
+        if not 0 <= mesh_id < len(self._meshes):
+            raise ValueError(f"mesh_id must be in [0, {len(self._meshes)}), got {mesh_id}")
+        t_on, t_off = _window(active)
+        self._mesh_par[mesh_id, 13:15] = (t_on, t_off)
+        self._meshes[mesh_id]["active"] = [t_on, t_off]
+        self._forces_stale = True
 
     def mesh_triangles(self, mesh_id: int) -> np.ndarray:
         """Current triangle coordinates (T, 3, 3) of a mesh."""
@@ -939,8 +1012,8 @@ class Simulation:
         sim._thist[0, :n] = a["thist"]
         sim._ntri[0, :n] = a["ntri"]
         sim._cur[0] = 0
-        sim._planes = a["planes"]
-        sim._cyls = a["cyls"]
+        sim._planes = _with_window(a["planes"], _PLANE_COLS)
+        sim._cyls = _with_window(a["cyls"], _CYL_COLS)
         sim._whist = np.zeros((sim._cap, a["whist"].shape[1], 3))
         sim._whist[:n] = a["whist"]
         sim._tri_x0 = a["tri_x0"]

@@ -3,11 +3,13 @@ cylinders): the contacts of one sphere with every plane and cylinder, and their 
 
 Wall tables (one row per wall):
 
-- ``planes`` (npl, 7): a point (0:3), the unit normal pointing into the domain (3:6), material (6);
-  overlap ``delta = r - (x - p).n``; contact only for ``delta > 0`` and ``(x - p).n >= -r``.
-- ``cyls`` (ncy, 12): a point on the axis (0:3), unit axis u (3:6), radius R (6), side (7: +1
+- ``planes`` (npl, 9): a point (0:3), the unit normal pointing into the domain (3:6), material (6),
+  activation window ``t_on <= t < t_off`` (7, 8); overlap ``delta = r - (x - p).n``; contact
+  only for ``delta > 0`` and ``(x - p).n >= -r``.
+- ``cyls`` (ncy, 14): a point on the axis (0:3), unit axis u (3:6), radius R (6), side (7: +1
   particles inside, a drum; -1 outside, a shaft), angular speed about u (8, rad/s), material (9),
-  axial range from the point (10, 11). With s the distance of the centre from the axis,
+  axial range from the point (10, 11), activation window (12, 13). With s the distance of the
+  centre from the axis,
   ``delta = r + s - R`` inside and ``r - (s - R)`` outside; contact for ``0 < delta <= 2 r``.
   The wall velocity at the contact point c is ``omega u x (c - a)``.
 
@@ -35,12 +37,15 @@ __all__ = [
 
 
 @njit(cache=True, inline="always")
-def add_plane_contacts(i, P, IA, planes, whist, pt, dt, fx, fy, fz, tx, ty, tz):
-    """Add to particle i's force and torque (fx .. tz) its contacts with the planes, in table
-    order; update their histories. Returns the new (fx, fy, fz, tx, ty, tz)."""
+def add_plane_contacts(i, P, IA, planes, whist, pt, dt, t, fx, fy, fz, tx, ty, tz):
+    """Add to particle i's force and torque (fx .. tz) its contacts with the planes active at
+    time t, in table order; update their histories. Returns the new (fx, fy, fz, tx, ty, tz)."""
     x, y, z = P[i, 0], P[i, 1], P[i, 2]
     ri = P[i, 9]
     for w in range(planes.shape[0]):
+        if not (planes[w, 7] <= t < planes[w, 8]):
+            clear_history(whist, i, w)
+            continue
         dist = (
             (x - planes[w, 0]) * planes[w, 3]
             + (y - planes[w, 1]) * planes[w, 4]
@@ -59,9 +64,10 @@ def add_plane_contacts(i, P, IA, planes, whist, pt, dt, fx, fy, fz, tx, ty, tz):
 
 
 @njit(cache=True, inline="always")
-def add_cylinder_contacts(i, P, IA, cyls, npl, whist, pt, dt, fx, fy, fz, tx, ty, tz):
-    """Add to particle i's force and torque (fx .. tz) its contacts with the cylinders, in table
-    order (histories in ``whist[i, npl + w]``). Returns the new (fx, fy, fz, tx, ty, tz)."""
+def add_cylinder_contacts(i, P, IA, cyls, npl, whist, pt, dt, t, fx, fy, fz, tx, ty, tz):
+    """Add to particle i's force and torque (fx .. tz) its contacts with the cylinders active at
+    time t, in table order (histories in ``whist[i, npl + w]``). Returns the new
+    (fx, fy, fz, tx, ty, tz)."""
     x, y, z = P[i, 0], P[i, 1], P[i, 2]
     ri = P[i, 9]
     for w in range(cyls.shape[0]):
@@ -69,7 +75,7 @@ def add_cylinder_contacts(i, P, IA, cyls, npl, whist, pt, dt, fx, fy, fz, tx, ty
         ux, uy, uz = cyls[w, 3], cyls[w, 4], cyls[w, 5]
         ax_ = qx * ux + qy * uy + qz * uz
         hw = npl + w
-        if ax_ < cyls[w, 10] or ax_ > cyls[w, 11]:
+        if ax_ < cyls[w, 10] or ax_ > cyls[w, 11] or not (cyls[w, 12] <= t < cyls[w, 13]):
             clear_history(whist, i, hw)
             continue
         rx, ry, rz = qx - ax_ * ux, qy - ax_ * uy, qz - ax_ * uz

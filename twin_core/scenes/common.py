@@ -127,7 +127,8 @@ def make_simulation(
     """Engine ``Simulation`` with the scene's material, domain and meshes.
 
     Particle material 0 (the config's particle properties, pp_* coefficients), wall material 1
-    (steel elastic constants, pw_* coefficients for the particle-wall pair). Static meshes are
+    (steel elastic constants, or the particle's with ``walls_of_particle_material``; pw_*
+    coefficients for the particle-wall pair). Static meshes are
     added without motion, rotating meshes with a ``RotationMotion``, removable ones active
     until their removal time.
     """
@@ -145,10 +146,13 @@ def make_simulation(
         restitution=m.pp_restitution,
         name="particle",
     )
+    wall_solid = (
+        (m.density, m.shear_modulus, m.poisson)
+        if m.walls_of_particle_material
+        else (m.wall_density, m.wall_shear_modulus, m.wall_poisson)
+    )
     wall = Material(
-        density=m.wall_density,
-        shear_modulus=m.wall_shear_modulus,
-        poisson=m.wall_poisson,
+        *wall_solid,
         friction=m.pw_friction,
         rolling_friction=m.pw_rolling_friction,
         restitution=m.pw_restitution,

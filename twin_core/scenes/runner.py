@@ -10,12 +10,15 @@ scene's curves (``twin_core.scenes.plots``), the frames as VTK (``particles.pvd`
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 __all__ = ["run_scene"]
+
+log = logging.getLogger(__name__)
 
 Run = tuple[str, dict, Path]
 
@@ -169,11 +172,14 @@ def run_scene(
 ) -> dict[str, dict]:
     """Run a scene (``schemas.dem_scene`` config) into ``out_dir`` with its outputs (module
     docstring); returns the scalar results by run (also in ``summary.json``). ``resume``:
-    continue each run from its last checkpoint."""
+    continue each run from its last checkpoint. The engine's kernels are compiled (or loaded
+    from numba's cache) first, phase by phase, each phase logged before it starts."""
     from twin_core.dem.stl import write_stl
+    from twin_core.dem.warmup import compile_kernels
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    compile_kernels(report=log.info)
     geo0, runs = _runs(cfg, out, resume, progress)
     if cfg.output.stl:
         for m in geo0.all_meshes():

@@ -10,12 +10,14 @@ particle diameter). C and k are empirical: the literature puts C at about 0.55-0
 the defaults C = 0.58, k = 1.5 are Beverloo's and Nedderman's central values for
 free-flowing near-spherical grains.
 
-Protocol: the silo is filled on a lattice and settles for ``settle_s`` with the orifice
-plugged; then the plug is removed. With ``recycle=True`` every particle that has fallen
+Protocol: the silo is filled on a lattice (or poured: inserted at random in its top quarter at
+a constant rate over ``pour_s``) and settles for ``settle_s`` with the orifice plugged; then the
+plug is removed. The side wall is a triangulated cylinder or the engine's primitive cylinder
+(``wall``). With ``recycle=True`` every particle that has fallen
 ``3 d`` below the orifice is taken out and put back on top of the bed (constant head, as in
 the "recirculating silo" of DEM studies), so a small silo discharges at a steady rate for as
 long as wanted. The rate is the slope of the cumulative mass through the orifice plane over the
-last 70 % of the discharge window.
+last 70 % of the discharge window, or over ``fit_window_s``.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from schemas.dem_scene import SiloScene
+from twin_core.dem.insertion import CylinderRegion, ParticleFactory
 from twin_core.dem.sensors import PlaneFlowSensor
 from twin_core.scenes import common
 from twin_core.scenes.geometry import SceneGeometry, flat_silo
@@ -45,18 +48,35 @@ def beverloo_rate(
 
 
 def build_geometry(cfg: SiloScene) -> SceneGeometry:
+    """Silo meshes (:func:`flat_silo`) with room below the orifice; with ``wall: cylinder`` the
+    side-wall mesh is left out (the primitive cylinder is added by :func:`build`)."""
     geo = flat_silo(
         cfg.silo_radius, cfg.silo_height, cfg.orifice_diameter, plug_remove_s=cfg.settle_s
     )
+    if cfg.wall == "cylinder":
+        geo.static = [m for m in geo.static if m.name != "wall"]
     # room below the orifice for the falling jet
     geo.info["domain_lo"] = [-cfg.silo_radius, -cfg.silo_radius, -8 * cfg.radius - 0.01]
     return geo
 
 
-def build(cfg: SiloScene) -> tuple[Any, SceneGeometry]:
-    geo = build_geometry(cfg)
-    sim, pid, _ = common.make_simulation(cfg, geo, pad=2 * cfg.radius)
+def _fill(cfg: SiloScene, sim: Any, pid: int) -> None:
+    """Lattice fill at t = 0, or a factory pouring ``n_particles`` into the top quarter of the
+    silo at a constant rate over ``pour_s`` (default half of ``settle_s``)."""
     r = cfg.radius
+    if cfg.fill == "poured":
+        pour_s = cfg.pour_s if cfg.pour_s is not None else 0.5 * cfg.settle_s
+        top = 0.25 * cfg.silo_height
+        region = CylinderRegion(
+            (0.0, 0.0, cfg.silo_height - top), (0.0, 0.0, 1.0), cfg.silo_radius - 1.05 * r, top
+        )
+        sim.add_factory(
+            ParticleFactory(
+                region, cfg.n_particles, rate=cfg.n_particles / pour_s, radius=r,
+                material_id=pid, type_id=1, seed=cfg.seed,
+            )
+        )  # fmt: skip
+        return
     Rin = cfg.silo_radius - 1.05 * r
     pos = common.lattice_positions(
         cfg.n_particles,
@@ -67,6 +87,17 @@ def build(cfg: SiloScene) -> tuple[Any, SceneGeometry]:
         np.random.default_rng(cfg.seed),
     )
     sim.add_particles(pos, np.full(len(pos), r), pid, 1)
+
+
+def build(cfg: SiloScene) -> tuple[Any, SceneGeometry]:
+    """Engine simulation of the silo: meshes, side wall, fill (placed or announced)."""
+    geo = build_geometry(cfg)
+    sim, pid, wid = common.make_simulation(cfg, geo, pad=2 * cfg.radius)
+    r = cfg.radius
+    if cfg.wall == "cylinder":
+        sim.add_cylinder((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), cfg.silo_radius, material_id=wid,
+                         inside=True, extent=(0.0, cfg.silo_height))  # fmt: skip
+    _fill(cfg, sim, pid)
     if not cfg.recycle:
         lo = geo.info["domain_lo"]
         sim.add_outlet([lo[0] - 1, lo[1] - 1, lo[2] - 1], [1, 1, -4 * r])
@@ -159,6 +190,7 @@ def run(cfg: SiloScene, run_dir: Path, *, resume: bool = False, progress: bool =
             )
 
     t_end = cfg.settle_s + cfg.discharge_s
+    fit_a, fit_b = cfg.fit_window_s or (0.3 * cfg.discharge_s, cfg.discharge_s)
     common.run_segments(
         sim,
         t_end,
@@ -175,8 +207,7 @@ def run(cfg: SiloScene, run_dir: Path, *, resume: bool = False, progress: bool =
     frames.close()
     flow: PlaneFlowSensor = state.sensors["orifice"]
     ev = flow.events_
-    t0 = cfg.settle_s + 0.3 * cfg.discharge_s
-    sel = ev["t"] >= t0
+    sel = (ev["t"] >= cfg.settle_s + fit_a) & (ev["t"] <= cfg.settle_s + fit_b)
     order = np.argsort(ev["t"][sel])
     tt = ev["t"][sel][order]
     cm = np.cumsum((ev["mass"] * ev["n"])[sel][order])
@@ -201,6 +232,7 @@ def run(cfg: SiloScene, run_dir: Path, *, resume: bool = False, progress: bool =
         "beverloo_c": cfg.beverloo_c,
         "beverloo_k": cfg.beverloo_k,
         "discharged_particles": int(len(ev["t"])),
+        "fit_window_s": [fit_a, fit_b],
         "recycled": int(state.flags.get("recycled", 0)),
         "flow_t_s": tb,
         "flow_kg_s": fr[:, -1],

@@ -108,6 +108,40 @@ def test_sphere_resting_on_mesh_feels_one_contact(xy):
     assert R - sim.pos[0, 2] == pytest.approx(d_eq, rel=0.02)
 
 
+_SEAM_L = 0.04  # periodic length (x) of the seam tests
+_SEAM_W = 0.04  # floor width (y)
+
+
+@pytest.mark.parametrize(
+    "x",
+    [0.5 * _SEAM_L, 0.9 * _SEAM_L, 0.99 * _SEAM_L, 0.1 * _SEAM_L, 0.01 * _SEAM_L, 0.0004],
+)
+@pytest.mark.parametrize("side", [-1, 1])
+def test_sphere_on_full_length_periodic_floor_near_seam_is_held(x, side):
+    """A floor spanning the whole periodic length in two triangles (a wall extruded along the
+    periodic axis, like the blender trough): a sphere resting on it anywhere, next to the seam
+    included, on either side of the diagonal, is held at the equilibrium overlap of one Hertz
+    contact (force balance m g, as on an analytic plane). With the image of the sphere taken
+    about each triangle's centroid, a sphere within a third of the period of the seam saw the
+    triangle under it only through its far edge and fell through the floor."""
+    L, W = _SEAM_L, _SEAM_W
+    v = np.array([[0, 0, 0], [0, W, 0], [L, W, 0], [L, 0, 0]], float)
+    t = np.array([[0, 1, 2], [0, 2, 3]])  # centroids at x = L/3 and 2L/3; diagonal y = W x / L
+    sim = Simulation((0, -0.01, -0.005), (L, W + 0.01, 0.01), periodic=(True, False, False),
+                     materials=[_mat(e=0.1)])  # fmt: skip
+    sim.add_mesh(v, t)
+    y = W * x / L + side * 2.5 * R
+    y = min(max(y, 2 * R), W - 2 * R)
+    sim.add_particles([[x, y, R - 1e-6]], R)
+    sim.run(0.05)
+    assert len(sim.ids) == 1
+    mg = sim.mass[0] * G
+    e_star = sim._pt[0, 0, 0]
+    d_eq = (mg / (4.0 / 3.0 * e_star * math.sqrt(R))) ** (2.0 / 3.0)
+    assert abs(sim.vel[0, 2]) < 1e-5
+    assert R - sim.pos[0, 2] == pytest.approx(d_eq, rel=0.02)
+
+
 def test_mesh_activation_window_and_rotation():
     """A mesh plate removed at t_off releases the particle (the seed's separating plate); a
     rotating mesh is where RotationMotion puts it (Rodrigues rotation, 60 rpm = 1 turn/s)."""
@@ -127,6 +161,92 @@ def test_mesh_activation_window_and_rotation():
     p0 = v[t[0, 0]] - np.array([0.005, 0.005, 0])
     exp = np.array([c * p0[0] - s * p0[1], s * p0[0] + c * p0[1], 0]) + [0.005, 0.005, 0]
     assert np.allclose(tri[0, 0], exp, atol=1e-12)
+
+
+def test_plane_switched_off_and_on_by_activation_window():
+    """A floor plane with a window releases the sphere at t_off; a second plane created off and
+    switched on through the public API catches it and holds it at the one-contact Hertz
+    overlap (force balance m g); the elastic energy counts active planes only."""
+    sim = Simulation((0, 0, -0.02), (0.01, 0.01, 0.01), materials=[_mat(e=0.1)])
+    sim.add_plane((0, 0, 0), (0, 0, 1), active=(-math.inf, 0.05))
+    low = sim.add_plane((0, 0, -0.01), (0, 0, 1), active=(1e3, 2e3))
+    sim.add_particles([[0.005, 0.005, R - 1e-6]], R)
+    sim.run(0.04)
+    assert sim.pos[0, 2] > 0.9 * R
+    sim.set_plane_active(low, (0.0, math.inf))
+    sim.run(0.16)
+    mg = sim.mass[0] * G
+    e_star = sim._pt[0, 0, 0]
+    d_eq = (mg / (4.0 / 3.0 * e_star * math.sqrt(R))) ** (2.0 / 3.0)
+    assert abs(sim.vel[0, 2]) < 1e-5
+    assert -0.01 + R - sim.pos[0, 2] == pytest.approx(d_eq, rel=0.02)
+    e_hertz = 8.0 / 15.0 * e_star * math.sqrt(R) * d_eq**2.5
+    pg = -sim.mass[0] * float(sim.pos[0] @ np.array([0, 0, -G]))
+    assert sim.potential_energy() - pg == pytest.approx(e_hertz, rel=0.05)
+    with pytest.raises(ValueError, match="active"):
+        sim.set_plane_active(low, (1.0, 1.0))
+    with pytest.raises(ValueError, match="plane_id"):
+        sim.set_plane_active(5, (0.0, 1.0))
+
+
+def test_mesh_switched_off_between_runs_releases_sphere():
+    """``set_mesh_active`` ends a mesh's window from now on (the plate of a drawdown test or a
+    silo plug pulled at a time chosen during the run): the sphere resting on it falls freely,
+    ``z = z0 - g t^2 / 2`` (from rest; within 2 % after 40 ms)."""
+    v, t = _square_mesh(0.0)
+    sim = Simulation((0, 0, -0.02), (0.01, 0.01, 0.01), materials=[_mat(e=0.1)])
+    mid = sim.add_mesh(v, t)
+    sim.add_particles([[0.005, 0.005, R - 1e-6]], R)
+    sim.run(0.03)
+    z0 = sim.pos[0, 2]
+    sim.set_mesh_active(mid, (-math.inf, sim.t))
+    sim.vel[0] = 0.0
+    sim.run(0.04)
+    assert z0 - sim.pos[0, 2] == pytest.approx(0.5 * G * 0.04**2, rel=0.02)
+    with pytest.raises(ValueError, match="mesh_id"):
+        sim.set_mesh_active(3, (0.0, 1.0))
+
+
+def test_drum_spun_up_after_creation_carries_sphere_to_friction_angle():
+    """A drum (primitive cylinder, axis x) created at rest holds a sphere at its bottom; spun up
+    through ``set_cylinder_rpm`` it drags the sphere (rotation held by a large rolling
+    friction, as on the incline) up to the angle where it slides: tan(theta) = mu_s (Coulomb;
+    the centripetal term omega^2 R / g is 0.1 % at 6 rpm). Stopping it again leaves the sphere
+    on the wall below that angle."""
+    mu, rd = 0.3, 0.02
+    sim = Simulation((0, -0.025, -0.025), (0.01, 0.025, 0.025), periodic=(True, False, False),
+                     materials=[_mat(e=0.1, mu=mu, mur=2.0)])  # fmt: skip
+    drum = sim.add_cylinder((0, 0, 0), (1, 0, 0), rd, inside=True)
+    sim.add_particles([[0.005, 0.0, -(rd - R) + 1e-6]], R)
+    sim.run(0.05)
+    assert abs(sim.pos[0, 1]) < 1e-6
+    sim.set_cylinder_rpm(drum, 6.0)
+    assert sim.cylinder_rpm(drum) == pytest.approx(6.0)
+    sim.run(0.6)
+    theta = math.atan2(sim.pos[0, 1], -sim.pos[0, 2])  # rotation about +x carries it to +y
+    assert theta == pytest.approx(math.atan(mu), rel=0.03)
+    sim.set_cylinder_rpm(drum, 0.0)
+    sim.run(0.2)
+    assert 0.0 < math.atan2(sim.pos[0, 1], -sim.pos[0, 2]) <= math.atan(mu) * 1.03
+    with pytest.raises(ValueError, match="rpm"):
+        sim.set_cylinder_rpm(drum, math.nan)
+
+
+def test_checkpoint_without_wall_windows_loads_always_active(tmp_path):
+    """A checkpoint written before walls had activation windows (7-column planes, 12-column
+    cylinders) loads with every wall active."""
+    sim = Simulation((0, 0, 0), (0.01, 0.01, 0.02), materials=[_mat(e=0.1)])
+    sim.add_plane((0, 0, 0), (0, 0, 1))
+    sim.add_cylinder((0.005, 0.005, 0), (0, 0, 1), 0.005)
+    sim.add_particles([[0.005, 0.005, 0.005]], R)
+    path = sim.save_checkpoint(tmp_path / "c.npz")
+    with np.load(path) as z:
+        a = {k: z[k] for k in z.files}
+    a["planes"], a["cyls"] = a["planes"][:, :7], a["cyls"][:, :12]
+    np.savez(path, **a)
+    old = Simulation.load_checkpoint(path)
+    assert np.array_equal(old._planes[:, 7:], [[-math.inf, math.inf]])
+    assert np.array_equal(old._cyls[:, 12:], [[-math.inf, math.inf]])
 
 
 def test_translating_mesh_pushes_particle():

@@ -24,6 +24,7 @@ LAYERS = [
     {"integrator", "energy", "insertion"},
     {"simulation"},
     {"sensors"},
+    {"warmup"},
 ]
 LAYER_OF = {name: k for k, layer in enumerate(LAYERS) for name in layer}
 MAX_FUNCTION_LINES = 80
