@@ -1,0 +1,122 @@
+"""The OPC UA mapping, pure: unit conversion (checked against the units' definitions), bad
+values refused by reason, one message per unit and source time whatever the arrival order,
+gaps counted, marked and left as a sequence gap (the close-loop's data-quality rule)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from pydantic import ValidationError
+
+from schemas.messages import Event, FeederFlow, MeasuredConcentration
+from schemas.opcua import BridgeConfig, NodeMap
+from twin_core.plant.opcua_map import BadValue, MessageAssembler, convert, gap_event
+
+
+def _config(**over) -> BridgeConfig:
+    data = {
+        "endpoint": "opc.tcp://127.0.0.1:4840",
+        "line": "line1",
+        "epoch_utc": "2026-01-01T00:00:00+01:00",
+        "feeders": [
+            {
+                "id": "api",
+                "component": "api",
+                "nodes": {
+                    "mass_flow_kg_h": {"node_id": "q", "unit": "g/s", "valid_max": 10},
+                    "screw_speed_rpm": {"node_id": "n", "unit": "rev/s"},
+                    "hopper_mass_kg": {"node_id": "m", "unit": "g", "scale": 0.5},
+                },
+            }
+        ],
+        "sensor": {"id": "nir1", "component": "api", "node": {"node_id": "c", "unit": "fraction"}},
+        "tracer": {"component": "api", "node": {"node_id": "tr", "unit": "g"}},
+    }
+    data.update(over)
+    return BridgeConfig.model_validate(data)
+
+
+def test_units_follow_their_definitions():
+    """1 g/s = 3.6 kg/h, 1 rev/s = 60 rev/min, fraction 1 = 100 % w/w, scale and offset first."""
+    assert convert(NodeMap(node_id="a", unit="g/s"), 1.0) == pytest.approx(3.6)
+    assert convert(NodeMap(node_id="a", unit="rev/s"), 0.5) == pytest.approx(30.0)
+    assert convert(NodeMap(node_id="a", unit="fraction"), 0.05) == pytest.approx(5.0)
+    assert convert(NodeMap(node_id="a", unit="kg/h", scale=0.1, offset=1.0), 20) == pytest.approx(3.0)
+    assert convert(NodeMap(node_id="a", unit="bool"), 1) is True
+
+
+@pytest.mark.parametrize(
+    ("raw", "reason"),
+    [(math.nan, "rejected_nan"), (math.inf, "rejected_nan"), ("12.5", "rejected_type"),
+     (None, "rejected_type"), (True, "rejected_type"), (11.0, "rejected_range"),
+     (-0.5, "rejected_range")],
+)
+def test_bad_values_are_refused_by_reason(raw, reason):
+    node = NodeMap(node_id="q", unit="g/s", valid_min=0, valid_max=10)
+    with pytest.raises(BadValue) as exc:
+        convert(node, raw)
+    assert exc.value.reason == reason
+
+
+def test_unknown_unit_and_wrong_quantity_are_refused_naming_the_field():
+    with pytest.raises(ValidationError, match="unit must be one of"):
+        NodeMap(node_id="a", unit="furlong/fortnight")
+    with pytest.raises(ValidationError, match="mass_flow_kg_h.unit must be a unit of mass_flow"):
+        _config(feeders=[{"id": "api", "component": "api", "nodes": {
+            "mass_flow_kg_h": {"node_id": "q", "unit": "kg"},
+            "screw_speed_rpm": {"node_id": "n", "unit": "rpm"},
+            "hopper_mass_kg": {"node_id": "m", "unit": "kg"}}}])
+    with pytest.raises(ValidationError, match="epoch_utc must carry a time zone"):
+        _config(epoch_utc="2026-01-01T00:00:00")
+
+
+def test_one_message_per_unit_and_time_whatever_the_arrival_order():
+    """Notifications arrive grouped by node (OPC UA keeps the order per monitored item only):
+    each feeder message waits for all its nodes of that time, and messages leave in time
+    order."""
+    a = MessageAssembler(_config())
+    out = []
+    for node, t, raw in (("q", 1.0, 1.0), ("q", 2.0, 2.0), ("n", 1.0, 0.5), ("n", 2.0, 0.5)):
+        out += a.add(node, t, raw)[0]
+    assert out == []  # the hopper mass of both times is still missing
+    out += a.add("m", 1.0, 100.0)[0]
+    assert [m.t for _, m in out] == [1.0]
+    out += a.add("m", 2.0, 200.0)[0]
+    assert [m.t for _, m in out] == [1.0, 2.0]
+    first = out[0][1]
+    assert isinstance(first, FeederFlow)
+    assert first.mass_flow_kg_h == pytest.approx(3.6) and first.hopper_mass_kg == pytest.approx(0.05)
+    # feed factor by its definition: 1000 Q / (60 n) g/rev
+    assert first.feed_factor_g_rev == pytest.approx(1000 * 3.6 / (60 * 30.0))
+    assert [m.seq for _, m in out] == [0, 1]
+
+
+def test_sensor_tracer_and_gap():
+    a = MessageAssembler(_config())
+    msgs = []
+    for t in (0.0, 1.0, 2.0, 6.0):  # samples 3, 4, 5 never came
+        m, gaps = a.add("c", t, 0.05)
+        msgs += m
+    assert [m.seq for _, m in msgs] == [0, 1, 2, 6]  # the sequence skips the 3 missed samples
+    assert isinstance(msgs[0][1], MeasuredConcentration)
+    assert msgs[0][1].concentration_pct_w_w == pytest.approx(5.0)
+    assert a.counters["samples_missed"] == 3
+    assert len(gaps) == 1 and (gaps[0].t_before_s, gaps[0].t_after_s, gaps[0].n_missed) == (2.0, 6.0, 3)
+    ev = gap_event(gaps[0], 0)
+    assert ev.kind == "note" and "missed 3 samples" in ev.detail and ev.t == 6.0
+    pulse, _ = a.add("tr", 300.0, 10.0)
+    assert isinstance(pulse[0][1], Event) and pulse[0][1].kind == "tracer_pulse"
+    assert pulse[0][1].mass_kg == pytest.approx(0.01)
+    assert a.add("tr", 301.0, 0.0)[0] == []  # mass 0: no pulse
+
+
+def test_bad_and_late_samples_are_counted_and_dropped():
+    a = MessageAssembler(_config())
+    assert a.add("c", 1.0, math.nan) == ([], [])
+    assert a.add("c", 1.0, "x") == ([], [])
+    assert a.add("c", 2.0, 0.05)[0]
+    assert a.add("c", 1.5, 0.05) == ([], [])
+    assert a.add("nope", 3.0, 1.0) == ([], [])
+    c = a.counters
+    assert (c["rejected_nan"], c["rejected_type"], c["late"], c["rejected_unknown"]) == (1, 1, 1, 1)

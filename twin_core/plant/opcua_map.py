@@ -1,0 +1,268 @@
+"""From PLC/SCADA/PAT samples to the twin's messages: units, validity, assembly, gaps.
+
+Pure computation on the mapping ``schemas.opcua.BridgeConfig`` (no OPC UA stack here: the
+bridge in ``services/opcua_bridge.py`` and ``twin import`` feed it samples ``(node, source
+time, raw value)``).
+
+- :func:`convert`: a raw node value to the contract's unit, v = (raw * scale + offset) * f_u,
+  f_u the factor of the declared unit (``schemas.opcua.UNITS``: e.g. 1 g/s = 3.6 kg/h,
+  1 rev/s = 60 rev/min, fraction 1 = 100 % w/w); NaN/inf, a wrong type (text, a missing
+  value) and a value outside ``[valid_min, valid_max]`` are refused (:class:`BadValue`, with
+  the reason the bridge counts: ``rejected_nan``, ``rejected_type``, ``rejected_range``).
+- :class:`MessageAssembler`: the samples of one unit (feeder, sensor, tracer) with the same
+  source time become one message (``FeederFlow``, ``MeasuredConcentration``, a
+  ``tracer_pulse`` ``Event``) once every node of the unit has reported that time, in time
+  order per unit (OPC UA notifications of several nodes arrive grouped by node, not in time
+  order). A newer complete time releases older incomplete ones with the unit's last values
+  (counted ``incomplete``). Feed factor, when not mapped, is its definition
+  ff = 1000 Q / (60 n) g/rev (Q kg/h, n rev/min; 0 when the screw stands), the seed's Eq. 2.
+- Gaps: a unit's next time more than 1.5 sample periods after its last is a gap of
+  round(dt / period) - 1 missed samples: the unit's sequence number skips that many (the
+  close-loop's data-quality step reads a stamp gap with a sequence gap as missing data,
+  ``twin_core.closeloop.quality``) and a :class:`Gap` is returned for the bridge to mark on
+  the bus (:func:`gap_event`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Any
+
+from schemas import keys
+from schemas.base import Message
+from schemas.messages import Event, FeederFlow, MeasuredConcentration
+from schemas.opcua import UNITS, BridgeConfig, NodeMap
+
+__all__ = [
+    "BadValue",
+    "Gap",
+    "MessageAssembler",
+    "convert",
+    "gap_event",
+    "plant_time_s",
+]
+
+#: a stamp gap longer than this many sample periods is missing data (the close-loop's rule)
+GAP_PERIODS = 1.5
+
+
+class BadValue(ValueError):
+    """A node value the twin must not use; ``reason`` is the counter it goes to."""
+
+    def __init__(self, reason: str, text: str) -> None:
+        super().__init__(text)
+        self.reason = reason
+
+
+def convert(node: NodeMap, raw: Any) -> float | bool:
+    """The value of ``raw`` in the contract's unit of the node's quantity (module docstring);
+    raises :class:`BadValue` for a wrong type, NaN/inf or a value out of the valid range."""
+    quantity, factor = UNITS[node.unit]
+    if quantity == "flag":
+        if isinstance(raw, bool) or (isinstance(raw, int) and raw in (0, 1)):
+            return bool(raw)
+        raise BadValue("rejected_type", f"{node.node_id}: expected a boolean, got {raw!r}")
+    if isinstance(raw, bool) or not isinstance(raw, (int, float)):
+        raise BadValue("rejected_type", f"{node.node_id}: expected a number, got {raw!r}")
+    if not math.isfinite(raw):
+        raise BadValue("rejected_nan", f"{node.node_id}: not a finite number, got {raw!r}")
+    value = raw * node.scale + node.offset
+    lo, hi = node.valid_min, node.valid_max
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        raise BadValue(
+            "rejected_range",
+            f"{node.node_id}: {value!r} {node.unit} outside [{lo}, {hi}]",
+        )
+    return value * factor
+
+
+def plant_time_s(source: datetime, epoch: datetime) -> float:
+    """Plant time of a sample: its source timestamp minus the plant's epoch, s (both aware)."""
+    return (source - epoch).total_seconds()
+
+
+@dataclass(frozen=True)
+class Gap:
+    """Samples of one unit that never came: ``n_missed`` between ``t_before_s`` and ``t_after_s``."""
+
+    unit: str
+    key: str
+    t_before_s: float
+    t_after_s: float
+    n_missed: int
+
+
+def gap_event(gap: Gap, seq: int) -> Event:
+    """The bus mark of a gap: a ``note`` Event at the first time after it, naming the unit,
+    the stretch and the samples missed."""
+    return Event(
+        t=gap.t_after_s,
+        seq=seq,
+        kind="note",
+        source="opcua",
+        detail=f"gap: {gap.unit} missed {gap.n_missed} samples between "
+        f"{gap.t_before_s:.3f} s and {gap.t_after_s:.3f} s ({gap.key})",
+    )
+
+
+@dataclass
+class _Unit:
+    """One message source: its key, its fields' nodes, its pending times and state."""
+
+    name: str
+    key: str
+    fields: dict[str, NodeMap]
+    period_s: float | None
+    build: Any
+    pending: dict[float, dict[str, Any]] = field(default_factory=dict)
+    last: dict[str, Any] = field(default_factory=dict)
+    last_t: float | None = None
+    seq: int = 0
+
+
+class MessageAssembler:
+    """Samples ``(node id, plant time, raw)`` in, ``(key, message)`` pairs and gaps out (module
+    docstring). ``counters`` counts ``samples``, ``rejected_*``, ``incomplete``,
+    ``samples_missed``, ``late`` (a time at or before the unit's last emitted one)."""
+
+    def __init__(self, config: BridgeConfig) -> None:
+        self.config = config
+        self.counters: dict[str, int] = {}
+        self.units: list[_Unit] = []
+        self._by_node: dict[str, tuple[_Unit, str]] = {}
+        line = config.line
+        for f in config.feeders:
+            self._add(_Unit(f"feeder {f.id}", keys.feeder_flow(line, f.id), dict(f.nodes),
+                            f.sample_period_s, self._feeder_builder(f.id, f.component)))
+        s = config.sensor
+        self._add(_Unit(f"sensor {s.id}", keys.measured_concentration(line, s.id),
+                        {"concentration_pct_w_w": s.node}, s.sample_period_s,
+                        self._sensor_builder(s.id, s.component)))
+        if config.tracer is not None:
+            tr = config.tracer
+            self._add(_Unit(f"tracer {tr.component}", keys.event(line, "tracer", tr.component),
+                            {"mass_kg": tr.node}, None,
+                            self._tracer_builder(tr.component, tr.duration_s)))
+
+    def _add(self, unit: _Unit) -> None:
+        self.units.append(unit)
+        for name, node in unit.fields.items():
+            self._by_node[node.node_id] = (unit, name)
+
+    def _count(self, name: str, n: int = 1) -> None:
+        self.counters[name] = self.counters.get(name, 0) + n
+
+    @staticmethod
+    def _feeder_builder(feeder_id: str, component: str):
+        def build(t: float, seq: int, v: dict[str, Any]) -> FeederFlow:
+            q, n = v["mass_flow_kg_h"], v["screw_speed_rpm"]
+            ff = v.get("feed_factor_g_rev", 1000.0 * q / (60.0 * n) if n > 0 else 0.0)
+            return FeederFlow(
+                t=t, seq=seq, component=component, mass_flow_kg_h=q,
+                setpoint_kg_h=v.get("setpoint_kg_h"), screw_speed_rpm=n,
+                hopper_mass_kg=v["hopper_mass_kg"], feed_factor_g_rev=ff,
+                refilling=v.get("refilling", False),
+            )
+
+        return build
+
+    @staticmethod
+    def _sensor_builder(sensor_id: str, component: str):
+        def build(t: float, seq: int, v: dict[str, Any]) -> MeasuredConcentration:
+            return MeasuredConcentration(
+                t=t, seq=seq, sensor=sensor_id, component=component,
+                concentration_pct_w_w=v["concentration_pct_w_w"],
+            )
+
+        return build
+
+    @staticmethod
+    def _tracer_builder(component: str, duration_s: float):
+        def build(t: float, seq: int, v: dict[str, Any]) -> Event | None:
+            mass = v["mass_kg"]
+            if mass <= 0:
+                return None
+            return Event(
+                t=t, seq=seq, kind="tracer_pulse", source=component, component=component,
+                mass_kg=mass, duration_s=duration_s,
+                detail=f"{mass * 1000:g} g {component} tracer pulse",
+            )
+
+        return build
+
+    def node_ids(self) -> list[str]:
+        """The nodes the assembler takes samples of."""
+        return list(self._by_node)
+
+    def add(self, node_id: str, t: float, raw: Any) -> tuple[list[tuple[str, Message]], list[Gap]]:
+        """One sample: the messages and gaps it completes (none while its time is incomplete).
+        A bad value is counted by reason and dropped (the unit's time then completes with the
+        node's last value when a later time does)."""
+        if node_id not in self._by_node:
+            self._count("rejected_unknown")
+            return [], []
+        unit, name = self._by_node[node_id]
+        self._count("samples")
+        try:
+            value = convert(unit.fields[name], raw)
+        except BadValue as exc:
+            self._count(exc.reason)
+            return [], []
+        if not math.isfinite(t) or t < 0:
+            self._count("rejected_time")
+            return [], []
+        if unit.last_t is not None and t <= unit.last_t:
+            self._count("late")
+            return [], []
+        unit.pending.setdefault(t, {})[name] = value
+        if len(unit.pending[t]) < len(unit.fields):
+            return [], []
+        return self._release(unit, t)
+
+    def _release(self, unit: _Unit, upto: float) -> tuple[list[tuple[str, Message]], list[Gap]]:
+        out: list[tuple[str, Message]] = []
+        gaps: list[Gap] = []
+        for t in sorted(x for x in unit.pending if x <= upto):
+            values = unit.pending.pop(t)
+            if len(values) < len(unit.fields):
+                missing = [f for f in unit.fields if f not in values and f not in unit.last]
+                if missing:  # nothing to fill in with: this time is lost
+                    self._count("incomplete")
+                    continue
+                self._count("incomplete")
+            values = {**unit.last, **values}
+            unit.last = values
+            gap = self._gap(unit, t)
+            if gap is not None:
+                gaps.append(gap)
+                unit.seq += gap.n_missed
+            msg = unit.build(t, unit.seq, values)
+            unit.last_t = t
+            if msg is None:
+                continue
+            unit.seq += 1
+            out.append((unit.key, msg))
+        return out, gaps
+
+    def _gap(self, unit: _Unit, t: float) -> Gap | None:
+        if unit.period_s is None or unit.last_t is None:
+            return None
+        dt = t - unit.last_t
+        if dt <= GAP_PERIODS * unit.period_s:
+            return None
+        n = max(1, round(dt / unit.period_s) - 1)
+        self._count("samples_missed", n)
+        return Gap(unit.name, unit.key, unit.last_t, t, n)
+
+    def flush(self) -> tuple[list[tuple[str, Message]], list[Gap]]:
+        """Release every pending time (end of an export, a bridge stopping)."""
+        out: list[tuple[str, Message]] = []
+        gaps: list[Gap] = []
+        for unit in self.units:
+            if unit.pending:
+                m, g = self._release(unit, max(unit.pending))
+                out += m
+                gaps += g
+        return out, gaps
