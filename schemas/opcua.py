@@ -91,6 +91,12 @@ class NodeMap(StrictModel):
     offset: Finite = Field(0.0, description="value in `unit` = raw * scale + offset")
     valid_min: Finite | None = Field(None, description="smallest valid value (declared unit)")
     valid_max: Finite | None = Field(None, description="largest valid value (declared unit)")
+    stamped: Literal["every_sample", "on_change"] = Field(
+        "every_sample",
+        description="every_sample: the PLC stamps the node at each sample of its unit (the "
+        "unit's message waits for it); on_change: only when its value changes (its last value "
+        "is used)",
+    )
 
     @field_validator("unit")
     @classmethod

@@ -11,10 +11,12 @@ time, raw value)``).
   the reason the bridge counts: ``rejected_nan``, ``rejected_type``, ``rejected_range``).
 - :class:`MessageAssembler`: the samples of one unit (feeder, sensor, tracer) with the same
   source time become one message (``FeederFlow``, ``MeasuredConcentration``, a
-  ``tracer_pulse`` ``Event``) once every node of the unit has reported that time, in time
-  order per unit (OPC UA notifications of several nodes arrive grouped by node, not in time
-  order). A newer complete time releases older incomplete ones with the unit's last values
-  (counted ``incomplete``). Feed factor, when not mapped, is its definition
+  ``tracer_pulse`` ``Event``) once every node of the unit has reported that time or a later
+  one (OPC UA keeps the order of each monitored item's notifications, not across items), in
+  time order per unit. A node the mapping declares ``stamped: on_change`` (a PLC stamping it
+  only when its value changes) is not waited for: its field takes the node's last value
+  (counted ``incomplete``); a time with a refused value is dropped (``dropped``), never
+  filled in. Feed factor, when not mapped, is its definition
   ff = 1000 Q / (60 n) g/rev (Q kg/h, n rev/min; 0 when the screw stands), the seed's Eq. 2.
 - Gaps: a unit's next time more than 1.5 sample periods after its last is a gap of
   round(dt / period) - 1 missed samples: the unit's sequence number skips that many (the
@@ -44,6 +46,8 @@ __all__ = [
     "plant_time_s",
 ]
 
+#: marks a field whose value at a time was refused (the time is dropped, not filled in)
+_REJECTED = object()
 #: a stamp gap longer than this many sample periods is missing data (the close-loop's rule)
 GAP_PERIODS = 1.5
 
@@ -120,6 +124,7 @@ class _Unit:
     last: dict[str, Any] = field(default_factory=dict)
     last_t: float | None = None
     seq: int = 0
+    node_t: dict[str, float] = field(default_factory=dict)
 
 
 class MessageAssembler:
@@ -197,35 +202,44 @@ class MessageAssembler:
         return list(self._by_node)
 
     def add(self, node_id: str, t: float, raw: Any) -> tuple[list[tuple[str, Message]], list[Gap]]:
-        """One sample: the messages and gaps it completes (none while its time is incomplete).
-        A bad value is counted by reason and dropped (the unit's time then completes with the
-        node's last value when a later time does)."""
+        """One sample: the messages and gaps it releases (module docstring). A bad value is
+        counted by reason; its time is dropped (a missed sample, seen as a gap)."""
         if node_id not in self._by_node:
             self._count("rejected_unknown")
             return [], []
         unit, name = self._by_node[node_id]
         self._count("samples")
-        try:
-            value = convert(unit.fields[name], raw)
-        except BadValue as exc:
-            self._count(exc.reason)
-            return [], []
         if not math.isfinite(t) or t < 0:
             self._count("rejected_time")
             return [], []
         if unit.last_t is not None and t <= unit.last_t:
             self._count("late")
             return [], []
+        try:
+            value = convert(unit.fields[name], raw)
+        except BadValue as exc:
+            self._count(exc.reason)
+            value = _REJECTED
         unit.pending.setdefault(t, {})[name] = value
-        if len(unit.pending[t]) < len(unit.fields):
-            return [], []
-        return self._release(unit, t)
+        unit.node_t[name] = max(unit.node_t.get(name, -math.inf), t)
+        # every node stamped each sample has reported this far (each node's samples come in
+        # time order); a node stamped on change only is not waited for
+        waited = [f for f, n in unit.fields.items() if n.stamped == "every_sample"] or [name]
+        ready = min(unit.node_t.get(f, -math.inf) for f in waited)
+        if any(f not in unit.node_t for f in unit.fields):  # an on-change node's first value
+            ready = -math.inf
+        if min(unit.pending) <= ready:
+            return self._release(unit, ready)
+        return [], []
 
     def _release(self, unit: _Unit, upto: float) -> tuple[list[tuple[str, Message]], list[Gap]]:
         out: list[tuple[str, Message]] = []
         gaps: list[Gap] = []
         for t in sorted(x for x in unit.pending if x <= upto):
             values = unit.pending.pop(t)
+            if any(v is _REJECTED for v in values.values()):
+                self._count("dropped")  # a bad value is never replaced by a guess
+                continue
             if len(values) < len(unit.fields):
                 missing = [f for f in unit.fields if f not in values and f not in unit.last]
                 if missing:  # nothing to fill in with: this time is lost

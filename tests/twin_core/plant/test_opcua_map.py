@@ -120,3 +120,33 @@ def test_bad_and_late_samples_are_counted_and_dropped():
     assert a.add("nope", 3.0, 1.0) == ([], [])
     c = a.counters
     assert (c["rejected_nan"], c["rejected_type"], c["late"], c["rejected_unknown"]) == (1, 1, 1, 1)
+
+
+def test_a_node_stamped_only_on_change_is_not_waited_for():
+    """A PLC that stamps the hopper mass only when it changes (declared ``on_change``): the
+    flow's times leave with the last hopper mass (counted incomplete); declared
+    ``every_sample``, they wait for it."""
+    feeders = _config().model_dump()["feeders"]
+    feeders[0]["nodes"]["hopper_mass_kg"]["stamped"] = "on_change"
+    for cfg, n_out in ((_config(feeders=feeders), 5), (_config(), 1)):
+        a = MessageAssembler(cfg)
+        out = []
+        for node, t, raw in (("q", 0.0, 1.0), ("n", 0.0, 0.5), ("m", 0.0, 100.0)):
+            out += a.add(node, t, raw)[0]
+        for t in range(1, 5):
+            out += a.add("q", float(t), 1.0)[0] + a.add("n", float(t), 0.5)[0]
+        assert [m.t for _, m in out] == [float(t) for t in range(n_out)]
+        assert all(m.hopper_mass_kg == pytest.approx(0.05) for _, m in out)
+        assert a.counters.get("incomplete", 0) == n_out - 1
+
+
+def test_a_refused_value_drops_its_time_as_a_missed_sample():
+    """A NaN flow at t = 1 is not replaced by a guess: time 1 is dropped, and the next message's
+    sequence number skips it (a gap for the close-loop's data-quality step)."""
+    a = MessageAssembler(_config())
+    out = []
+    for t, q in ((0.0, 1.0), (1.0, math.nan), (2.0, 1.0)):
+        for node, raw in (("q", q), ("n", 0.5), ("m", 100.0)):
+            out += a.add(node, t, raw)[0]
+    assert [(m.t, m.seq) for _, m in out] == [(0.0, 0), (2.0, 2)]
+    assert a.counters["dropped"] == 1 and a.counters["samples_missed"] == 1
