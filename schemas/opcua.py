@@ -139,7 +139,9 @@ class FeederMap(StrictModel):
     def _fields_known(self) -> FeederMap:
         for name, node in self.nodes.items():
             if name not in FEEDER_FIELDS:
-                raise ValueError(f"nodes: field must be one of {sorted(FEEDER_FIELDS)}, got {name!r}")
+                raise ValueError(
+                    f"nodes: field must be one of {sorted(FEEDER_FIELDS)}, got {name!r}"
+                )
             _check_quantity(f"nodes.{name}", node, FEEDER_FIELDS[name])
         missing = [f for f in REQUIRED_FEEDER_FIELDS if f not in self.nodes]
         if missing:

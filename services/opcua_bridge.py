@@ -60,7 +60,9 @@ def refusal(config: BridgeConfig, bus: BusConfig, insecure: bool) -> str | None:
     if config.diverter is None or insecure:
         return None
     if bus.usrpwd is None or bus.usrpwd.user is None:
-        return "the twin's bus is not secured (no user/password), so divert commands could be forged"
+        return (
+            "the twin's bus is not secured (no user/password), so divert commands could be forged"
+        )
     if not config.security.secured:
         return (
             f"the OPC UA session is not signed and encrypted (security.policy "
@@ -126,8 +128,9 @@ class OpcuaBridge:
                 keys.event(self.config.line, "plant", "opcua"), history=history
             )
             if self.config.diverter is not None:
-                svc.subscribe(keys.divert_command(self.config.line), self._on_divert,
-                              model=DivertCommand)
+                svc.subscribe(
+                    keys.divert_command(self.config.line), self._on_divert, model=DivertCommand
+                )
         except BaseException:
             svc.close()
             raise
@@ -158,8 +161,13 @@ class OpcuaBridge:
 
     def _emit(self, messages: list, gaps: list[Gap]) -> None:
         for gap in gaps:
-            log.warning("bridge: %s missed %d samples (%.3f-%.3f s)", gap.unit, gap.n_missed,
-                        gap.t_before_s, gap.t_after_s)
+            log.warning(
+                "bridge: %s missed %d samples (%.3f-%.3f s)",
+                gap.unit,
+                gap.n_missed,
+                gap.t_before_s,
+                gap.t_after_s,
+            )
             self._gap_pub.publish(gap_event(gap, self._gap_seq))
             self._gap_seq += 1
             self.counters.inc("gaps")
@@ -190,7 +198,9 @@ class OpcuaBridge:
     async def _write(self, cmd: DivertCommand) -> None:
         try:
             node = self._client.get_node(self.config.diverter.node_id)
-            await node.write_value(ua.DataValue(ua.Variant(cmd.model_dump_json(), ua.VariantType.String)))
+            await node.write_value(
+                ua.DataValue(ua.Variant(cmd.model_dump_json(), ua.VariantType.String))
+            )
             self.counters.inc("divert_written")
         except Exception as exc:  # noqa: BLE001 - counted and logged; the next command retries
             self.counters.inc("divert_failed")
@@ -226,7 +236,9 @@ class OpcuaBridge:
                 SecurityPolicyBasic256Sha256,
                 str(sec.certificate),
                 str(sec.private_key),
-                server_certificate=None if sec.server_certificate is None else str(sec.server_certificate),
+                server_certificate=None
+                if sec.server_certificate is None
+                else str(sec.server_certificate),
                 mode=mode,
             )
         if sec.user is not None:
@@ -240,7 +252,9 @@ class OpcuaBridge:
         nodes = [client.get_node(n) for n in self.assembler.node_ids()]
         flt = ua.DataChangeFilter(Trigger=ua.DataChangeTrigger.StatusValueTimestamp)
         handles = await sub._subscribe(nodes, mfilter=flt, queuesize=QUEUE_SIZE)
-        bad = [n for n, h in zip(self.assembler.node_ids(), handles) if isinstance(h, ua.StatusCode)]
+        bad = [
+            n for n, h in zip(self.assembler.node_ids(), handles) if isinstance(h, ua.StatusCode)
+        ]
         if bad:
             raise ValueError(f"the OPC UA server refused to monitor nodes {bad}")
 
@@ -263,7 +277,9 @@ class OpcuaBridge:
             except Exception as exc:  # noqa: BLE001 - any failure of the session: reconnect
                 self.connected.clear()
                 self.counters.inc("connection_lost" if not first else "connect_failed")
-                log.warning("bridge: OPC UA session to %s lost or refused: %s", self.config.endpoint, exc)
+                log.warning(
+                    "bridge: OPC UA session to %s lost or refused: %s", self.config.endpoint, exc
+                )
             finally:
                 if self._client is not None:
                     try:
@@ -285,4 +301,3 @@ def wait_for(predicate: Any, timeout_s: float, step_s: float = 0.02) -> bool:
             return True
         time.sleep(step_s)
     return bool(predicate())
-

@@ -55,8 +55,13 @@ class _Users(UserManager):
     def __init__(self, users: dict[str, str]) -> None:
         self.users = users
 
-    def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
-                 certificate: Any = None) -> User | None:
+    def get_user(
+        self,
+        iserver: Any,
+        username: str | None = None,
+        password: str | None = None,
+        certificate: Any = None,
+    ) -> User | None:
         if username is not None and self.users.get(username) == password:
             return User(role=UserRole.User, name=username)
         return None
@@ -84,9 +89,16 @@ class LoopbackPlant:
         private_key: Path | None = None,
         users: dict[str, str] | None = None,
     ) -> None:
-        self.messages = [(k, m) for k, m in messages if isinstance(m, (FeederFlow, MeasuredConcentration)) or (isinstance(m, Event) and m.kind == "tracer_pulse")]
+        self.messages = [
+            (k, m)
+            for k, m in messages
+            if isinstance(m, (FeederFlow, MeasuredConcentration))
+            or (isinstance(m, Event) and m.kind == "tracer_pulse")
+        ]
         if not self.messages:
-            raise ValueError("the loopback plant needs feeder flows and a PAT concentration, got none")
+            raise ValueError(
+                "the loopback plant needs feeder flows and a PAT concentration, got none"
+            )
         self.port = port
         self.speed = speed
         self.certificate = certificate
@@ -131,13 +143,18 @@ class LoopbackPlant:
                 }
                 for fid, comp in self.feeders.items()
             ],
-            "sensor": {"id": sid, "component": scomp,
-                       "node": {"node_id": node_id(f"{sid}.Concentration"), "unit": "% w/w"}},
+            "sensor": {
+                "id": sid,
+                "component": scomp,
+                "node": {"node_id": node_id(f"{sid}.Concentration"), "unit": "% w/w"},
+            },
             "diverter": {"node_id": node_id("Gate.Command")},
         }
         if self.tracer is not None:
-            data["tracer"] = {"component": self.tracer,
-                              "node": {"node_id": node_id("Tracer.Mass"), "unit": "kg"}}
+            data["tracer"] = {
+                "component": self.tracer,
+                "node": {"node_id": node_id("Tracer.Mass"), "unit": "kg"},
+            }
         return BridgeConfig.model_validate({**data, **overrides})
 
     # -- the server ------------------------------------------------------------------------------
@@ -169,8 +186,9 @@ class LoopbackPlant:
             await var.set_writable()  # a test writes bad values as a faulty PLC would
             await server.write_attribute_value(var.nodeid, ua.DataValue(StatusCode=waiting))
             self.vars[nid] = var
-        gate = await plc.add_variable(ua.NodeId("Gate.Command", ns), "Gate.Command", "",
-                                      varianttype=ua.VariantType.String)
+        gate = await plc.add_variable(
+            ua.NodeId("Gate.Command", ns), "Gate.Command", "", varianttype=ua.VariantType.String
+        )
         await gate.set_writable()
         self.vars["Gate.Command"] = gate
         await server.start()
@@ -225,8 +243,9 @@ class LoopbackPlant:
             elif isinstance(m, Event) and m.mass_kg:
                 await self.write("Tracer.Mass", m.mass_kg, t)
 
-    async def play(self, *, t_from: float = 0.0, t_to: float | None = None,
-                   on_tick: Any = None) -> int:
+    async def play(
+        self, *, t_from: float = 0.0, t_to: float | None = None, on_tick: Any = None
+    ) -> int:
         """Write the recording's ticks in ``[t_from, t_to]`` at ``speed`` x real time (plant
         time paced from the first tick); returns the ticks written. ``on_tick(t, wall)`` is
         called after each."""

@@ -30,6 +30,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "mixing",  # twin mixing compute
     "compartment",  # twin compartment build / simulate
     "closeloop",  # twin close-loop
+    "opcua",  # twin bridge opcua / plant-opcua / import
 )
 
 #: exit status of every command-line error

@@ -62,6 +62,12 @@ CASES: dict[str, tuple[str, str]] = {
         "{missing} --config {missing} --report {tmp}/r.json",
         "{missing} --config {bad} --report {tmp}/r.json",
     ),
+    "bridge opcua": ("--config {missing} --line {missing}", "--config {bad} --line {bad}"),
+    "plant-opcua": ("{missing}", "{bad}"),
+    "import": (
+        "{missing} --config {missing} --out {tmp}/o.mcap",
+        "{tmp} --config {bad} --out {tmp}/o.mcap",
+    ),
 }
 
 

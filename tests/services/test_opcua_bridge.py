@@ -22,7 +22,13 @@ from schemas.messages import DivertCommand, Event
 from services.bus import Publisher, free_port, open_session
 from services.opcua_bridge import OpcuaBridge, refusal, wait_for
 from services.opcua_plant import LoopbackPlant, recording_messages
-from services.security import RouterDictionary, RunCredentials, as_identity, secured_router, write_private
+from services.security import (
+    RouterDictionary,
+    RunCredentials,
+    as_identity,
+    secured_router,
+    write_private,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 RECORDING = ROOT / "recordings" / "line1_30min.mcap"
@@ -174,7 +180,9 @@ def test_divert_written_back_only_from_the_diverter_and_only_secured(loop, messa
     spec = LineSpec.from_file(ROOT / "services" / "configs" / "line1_5pct.yaml")
     router_port = free_port()
     spec = spec.model_copy(
-        update={"bus": BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{router_port}"], connect=[])}
+        update={
+            "bus": BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{router_port}"], connect=[])
+        }
     )
     creds = RunCredentials.generate(["oos", "plant"])
     dictionary = RouterDictionary(creds, tmp_path)
@@ -195,8 +203,15 @@ def test_divert_written_back_only_from_the_diverter_and_only_secured(loop, messa
             assert bridge.connected.wait(30)
             loop(plant.play(t_to=5))
             assert wait_for(lambda: bridge.counters.get("published") >= 18, 10)
-            cmd = DivertCommand(t=5.0, seq=0, command_id="c1", action="divert", t_start_s=17.2,
-                                t_end_s=73.2, reason="test")
+            cmd = DivertCommand(
+                t=5.0,
+                seq=0,
+                command_id="c1",
+                action="divert",
+                t_start_s=17.2,
+                t_end_s=73.2,
+                reason="test",
+            )
             forged = cmd.model_copy(update={"command_id": "forged", "seq": 1, "t": 6.0})
             with open_session(as_oos) as s_oos, open_session(as_plant) as s_plant:
                 Publisher(s_plant, keys.divert_command(LINE), DivertCommand).publish(forged)
@@ -209,8 +224,9 @@ def test_divert_written_back_only_from_the_diverter_and_only_secured(loop, messa
         # a wrong OPC UA password never connects
         bad = tmp_path / "bad.pw"
         write_private(bad, "wrong")
-        wrong = plant.bridge_config(security={**security, "password_file": str(bad)},
-                                    reconnect_s=0.2)
+        wrong = plant.bridge_config(
+            security={**security, "password_file": str(bad)}, reconnect_s=0.2
+        )
         with OpcuaBridge(wrong, as_plant) as bridge:
             assert wait_for(lambda: bridge.counters.get("connect_failed") >= 1, 20)
             assert not bridge.connected.is_set()
@@ -218,4 +234,3 @@ def test_divert_written_back_only_from_the_diverter_and_only_secured(loop, messa
         loop(plant.stop())
         router.close()
         dictionary.close()
-

@@ -139,17 +139,36 @@ class MessageAssembler:
         self._by_node: dict[str, tuple[_Unit, str]] = {}
         line = config.line
         for f in config.feeders:
-            self._add(_Unit(f"feeder {f.id}", keys.feeder_flow(line, f.id), dict(f.nodes),
-                            f.sample_period_s, self._feeder_builder(f.id, f.component)))
+            self._add(
+                _Unit(
+                    f"feeder {f.id}",
+                    keys.feeder_flow(line, f.id),
+                    dict(f.nodes),
+                    f.sample_period_s,
+                    self._feeder_builder(f.id, f.component),
+                )
+            )
         s = config.sensor
-        self._add(_Unit(f"sensor {s.id}", keys.measured_concentration(line, s.id),
-                        {"concentration_pct_w_w": s.node}, s.sample_period_s,
-                        self._sensor_builder(s.id, s.component)))
+        self._add(
+            _Unit(
+                f"sensor {s.id}",
+                keys.measured_concentration(line, s.id),
+                {"concentration_pct_w_w": s.node},
+                s.sample_period_s,
+                self._sensor_builder(s.id, s.component),
+            )
+        )
         if config.tracer is not None:
             tr = config.tracer
-            self._add(_Unit(f"tracer {tr.component}", keys.event(line, "tracer", tr.component),
-                            {"mass_kg": tr.node}, None,
-                            self._tracer_builder(tr.component, tr.duration_s)))
+            self._add(
+                _Unit(
+                    f"tracer {tr.component}",
+                    keys.event(line, "tracer", tr.component),
+                    {"mass_kg": tr.node},
+                    None,
+                    self._tracer_builder(tr.component, tr.duration_s),
+                )
+            )
 
     def _add(self, unit: _Unit) -> None:
         self.units.append(unit)
@@ -165,9 +184,14 @@ class MessageAssembler:
             q, n = v["mass_flow_kg_h"], v["screw_speed_rpm"]
             ff = v.get("feed_factor_g_rev", 1000.0 * q / (60.0 * n) if n > 0 else 0.0)
             return FeederFlow(
-                t=t, seq=seq, component=component, mass_flow_kg_h=q,
-                setpoint_kg_h=v.get("setpoint_kg_h"), screw_speed_rpm=n,
-                hopper_mass_kg=v["hopper_mass_kg"], feed_factor_g_rev=ff,
+                t=t,
+                seq=seq,
+                component=component,
+                mass_flow_kg_h=q,
+                setpoint_kg_h=v.get("setpoint_kg_h"),
+                screw_speed_rpm=n,
+                hopper_mass_kg=v["hopper_mass_kg"],
+                feed_factor_g_rev=ff,
                 refilling=v.get("refilling", False),
             )
 
@@ -177,7 +201,10 @@ class MessageAssembler:
     def _sensor_builder(sensor_id: str, component: str):
         def build(t: float, seq: int, v: dict[str, Any]) -> MeasuredConcentration:
             return MeasuredConcentration(
-                t=t, seq=seq, sensor=sensor_id, component=component,
+                t=t,
+                seq=seq,
+                sensor=sensor_id,
+                component=component,
                 concentration_pct_w_w=v["concentration_pct_w_w"],
             )
 
@@ -190,8 +217,13 @@ class MessageAssembler:
             if mass <= 0:
                 return None
             return Event(
-                t=t, seq=seq, kind="tracer_pulse", source=component, component=component,
-                mass_kg=mass, duration_s=duration_s,
+                t=t,
+                seq=seq,
+                kind="tracer_pulse",
+                source=component,
+                component=component,
+                mass_kg=mass,
+                duration_s=duration_s,
                 detail=f"{mass * 1000:g} g {component} tracer pulse",
             )
 

@@ -42,15 +42,23 @@ def test_units_follow_their_definitions():
     assert convert(NodeMap(node_id="a", unit="g/s"), 1.0) == pytest.approx(3.6)
     assert convert(NodeMap(node_id="a", unit="rev/s"), 0.5) == pytest.approx(30.0)
     assert convert(NodeMap(node_id="a", unit="fraction"), 0.05) == pytest.approx(5.0)
-    assert convert(NodeMap(node_id="a", unit="kg/h", scale=0.1, offset=1.0), 20) == pytest.approx(3.0)
+    assert convert(NodeMap(node_id="a", unit="kg/h", scale=0.1, offset=1.0), 20) == pytest.approx(
+        3.0
+    )
     assert convert(NodeMap(node_id="a", unit="bool"), 1) is True
 
 
 @pytest.mark.parametrize(
     ("raw", "reason"),
-    [(math.nan, "rejected_nan"), (math.inf, "rejected_nan"), ("12.5", "rejected_type"),
-     (None, "rejected_type"), (True, "rejected_type"), (11.0, "rejected_range"),
-     (-0.5, "rejected_range")],
+    [
+        (math.nan, "rejected_nan"),
+        (math.inf, "rejected_nan"),
+        ("12.5", "rejected_type"),
+        (None, "rejected_type"),
+        (True, "rejected_type"),
+        (11.0, "rejected_range"),
+        (-0.5, "rejected_range"),
+    ],
 )
 def test_bad_values_are_refused_by_reason(raw, reason):
     node = NodeMap(node_id="q", unit="g/s", valid_min=0, valid_max=10)
@@ -63,10 +71,19 @@ def test_unknown_unit_and_wrong_quantity_are_refused_naming_the_field():
     with pytest.raises(ValidationError, match="unit must be one of"):
         NodeMap(node_id="a", unit="furlong/fortnight")
     with pytest.raises(ValidationError, match="mass_flow_kg_h.unit must be a unit of mass_flow"):
-        _config(feeders=[{"id": "api", "component": "api", "nodes": {
-            "mass_flow_kg_h": {"node_id": "q", "unit": "kg"},
-            "screw_speed_rpm": {"node_id": "n", "unit": "rpm"},
-            "hopper_mass_kg": {"node_id": "m", "unit": "kg"}}}])
+        _config(
+            feeders=[
+                {
+                    "id": "api",
+                    "component": "api",
+                    "nodes": {
+                        "mass_flow_kg_h": {"node_id": "q", "unit": "kg"},
+                        "screw_speed_rpm": {"node_id": "n", "unit": "rpm"},
+                        "hopper_mass_kg": {"node_id": "m", "unit": "kg"},
+                    },
+                }
+            ]
+        )
     with pytest.raises(ValidationError, match="epoch_utc must carry a time zone"):
         _config(epoch_utc="2026-01-01T00:00:00")
 
@@ -86,7 +103,9 @@ def test_one_message_per_unit_and_time_whatever_the_arrival_order():
     assert [m.t for _, m in out] == [1.0, 2.0]
     first = out[0][1]
     assert isinstance(first, FeederFlow)
-    assert first.mass_flow_kg_h == pytest.approx(3.6) and first.hopper_mass_kg == pytest.approx(0.05)
+    assert first.mass_flow_kg_h == pytest.approx(3.6) and first.hopper_mass_kg == pytest.approx(
+        0.05
+    )
     # feed factor by its definition: 1000 Q / (60 n) g/rev
     assert first.feed_factor_g_rev == pytest.approx(1000 * 3.6 / (60 * 30.0))
     assert [m.seq for _, m in out] == [0, 1]
@@ -102,7 +121,11 @@ def test_sensor_tracer_and_gap():
     assert isinstance(msgs[0][1], MeasuredConcentration)
     assert msgs[0][1].concentration_pct_w_w == pytest.approx(5.0)
     assert a.counters["samples_missed"] == 3
-    assert len(gaps) == 1 and (gaps[0].t_before_s, gaps[0].t_after_s, gaps[0].n_missed) == (2.0, 6.0, 3)
+    assert len(gaps) == 1 and (gaps[0].t_before_s, gaps[0].t_after_s, gaps[0].n_missed) == (
+        2.0,
+        6.0,
+        3,
+    )
     ev = gap_event(gaps[0], 0)
     assert ev.kind == "note" and "missed 3 samples" in ev.detail and ev.t == 6.0
     pulse, _ = a.add("tr", 300.0, 10.0)
