@@ -104,7 +104,11 @@ def latency(messages, run, span_s: float, speed: float) -> dict:
         sub = session.declare_subscriber(keys.predicted_concentration(spec.name, "outlet"), on_pred)
         with OpcuaBridge(cfg, sup.client_config("plant"), spec=spec) as bridge:
             bridge.connected.wait(30)
-            run(plant.play(t_to=span_s, on_tick=lambda t, w: written.setdefault(t, time.monotonic())))
+            run(
+                plant.play(
+                    t_to=span_s, on_tick=lambda t, w: written.setdefault(t, time.monotonic())
+                )
+            )
             wait_for(lambda: max(seen, default=0) >= span_s, 30)
         sub.undeclare()
         session.close()

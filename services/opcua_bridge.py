@@ -50,6 +50,10 @@ log = logging.getLogger(__name__)
 
 #: history samples a bridge's publishers keep for late or restarted services
 HISTORY = 20000
+#: the server state is read this often; no answer within the timeout is a lost session (a
+#: closed connection fails at once; a busy client must not be taken for a dead server)
+LIVENESS_PERIOD_S = 0.5
+LIVENESS_TIMEOUT_S = 10.0
 #: queue of one monitored item on the server between two publishes
 QUEUE_SIZE = 1000
 
@@ -109,6 +113,7 @@ class OpcuaBridge:
         self._pubs: dict[str, Any] = {}
         self._gap_pub: Any = None
         self._gap_seq = 0
+        self._eos_pub: Any = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._client: Client | None = None
@@ -176,6 +181,22 @@ class OpcuaBridge:
             self.svc._advance(msg)
             if self.on_publish is not None:
                 self.on_publish(key, msg)
+
+    def end_of_stream(self) -> None:
+        """The plant's end of stream (``END_OF_STREAM`` on ``keys.replay_event``) at the last
+        plant time published: the twin's diverter then closes what is open (a demo or test
+        that serves a finite recording)."""
+        from schemas.messages import END_OF_STREAM, Event
+
+        if self._eos_pub is None:
+            self._eos_pub = self.svc.publisher(
+                keys.replay_event(self.config.line), history=self.svc.spec is not None
+            )
+        self._eos_pub.publish(
+            Event(
+                t=self.svc.plant_time_s, seq=0, kind="note", source="replay", detail=END_OF_STREAM
+            )
+        )
 
     def sample(self, node_id: str, source: Any, value: Any) -> None:
         """One OPC UA notification (also the entry point of tests)."""
@@ -270,8 +291,10 @@ class OpcuaBridge:
                 first = False
                 self.connected.set()
                 while not self.svc.stopping:
-                    await asyncio.sleep(0.2)
-                    await asyncio.wait_for(self._client.nodes.server_state.read_value(), 2.0)
+                    await asyncio.sleep(LIVENESS_PERIOD_S)
+                    await asyncio.wait_for(
+                        self._client.nodes.server_state.read_value(), LIVENESS_TIMEOUT_S
+                    )
             except ValueError:
                 raise
             except Exception as exc:  # noqa: BLE001 - any failure of the session: reconnect

@@ -269,46 +269,123 @@ def _wait_for_the_twin(tap: _Tap, spec: LineSpec, rec: Any, limit_s: float = 120
         time.sleep(0.1)
 
 
-def _run_twin(
-    rec: Any, spec: LineSpec, speed: float, echo: bool, timings: dict[str, float]
-) -> tuple[_Tap, int, dict[str, Any], dict[str, int], Path]:
-    """Services up, the recording replayed into them, the tap's view; returns (tap, messages
-    replayed, the services' health at the end of the run, exit codes, run directory)."""
+def _feed_recording(
+    rec: Any, sup: Any, spec: LineSpec, speed: float, timings: dict[str, float]
+) -> tuple[int, Any]:
+    """The virtual plant replays the recording into the running twin (``BusReplay``); returns
+    (messages published, the open replay, closed by the caller after the drain)."""
     from services.recording import BusReplay
+
+    rp = BusReplay(
+        rec,
+        sup.client_config("plant"),
+        spec=spec,
+        settle_s=0.5,
+        service_name="plant",
+        install_signal_handlers=False,
+    ).__enter__()
+    stats = rp.replay(
+        speed=speed if math.isfinite(speed) else 1.0,
+        as_fast_as_possible=not math.isfinite(speed),
+    )
+    timings["replay_wall_s"] = stats.wall_s
+    return stats.published, rp
+
+
+class _OpcuaFeed:
+    """The loopback OPC UA plant serving the recording and ``twin bridge opcua`` feeding the
+    twin from it (``services.opcua_plant``, ``services.opcua_bridge``); the bridge writes the
+    diverter's commands back to the plant's gate node (loopback, without OPC UA security)."""
+
+    def __init__(self, rec: Any, sup: Any, spec: LineSpec, speed: float) -> None:
+        import asyncio
+
+        from services.opcua_bridge import OpcuaBridge
+        from services.opcua_plant import LoopbackPlant
+
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.plant = LoopbackPlant(
+            [(m.key, m.decode()) for m in rec.messages],
+            port=free_port(),
+            speed=speed if math.isfinite(speed) else 1e6,
+        )
+        self.run(self.plant.start())
+        self.bridge = OpcuaBridge(
+            self.plant.bridge_config(), sup.client_config("plant"), spec=spec, insecure=True
+        ).__enter__()
+        if not self.bridge.connected.wait(30):
+            raise RuntimeError(f"the OPC UA bridge did not connect to {self.plant.endpoint}")
+
+    def run(self, coro: Any) -> Any:
+        import asyncio
+
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(600)
+
+    def feed(self, timings: dict[str, float]) -> int:
+        t0 = time.perf_counter()
+        self.run(self.plant.play())
+        want = len(self.plant.messages)
+        deadline = time.monotonic() + 30
+        while self.bridge.counters.get("published") < want and time.monotonic() < deadline:
+            time.sleep(0.02)
+        self.bridge.end_of_stream()
+        timings["replay_wall_s"] = time.perf_counter() - t0
+        return self.bridge.counters.get("published")
+
+    def __exit__(self, *exc: Any) -> None:
+        try:
+            self.bridge.close()
+            self.run(self.plant.stop())
+        finally:
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            self.thread.join(5)
+
+
+def _run_twin(
+    rec: Any,
+    spec: LineSpec,
+    speed: float,
+    echo: bool,
+    timings: dict[str, float],
+    opcua: bool = False,
+) -> tuple[_Tap, int, dict[str, Any], dict[str, int], Path, int]:
+    """Services up, the recording fed into them (replayed on the bus, or over OPC UA through
+    the bridge), the tap's view; returns (tap, messages fed, the services' health at the end of
+    the run, exit codes, run directory, divert commands written to the OPC UA gate)."""
     from services.supervisor import Supervisor
 
     t0 = time.perf_counter()
     sup = Supervisor(spec, backoff_s=0.5)
     tap = None
+    written = 0
     try:
         sup.start()
         if not sup.wait_ready(90):
             raise RuntimeError(f"services not ready after 90 s: alive {sorted(sup.alive)}")
         timings["startup_s"] = time.perf_counter() - t0
         tap = _Tap(spec, echo, sup.client_config("operator"))
-        with BusReplay(
-            rec,
-            sup.client_config("plant"),
-            spec=spec,
-            settle_s=0.5,
-            service_name="plant",
-            install_signal_handlers=False,
-        ) as rp:
-            stats = rp.replay(
-                speed=speed if math.isfinite(speed) else 1.0,
-                as_fast_as_possible=not math.isfinite(speed),
-            )
-            timings["replay_wall_s"] = stats.wall_s
+        if opcua:
+            feed = _OpcuaFeed(rec, sup, spec, speed)
+            sent = feed.feed(timings)
+        else:
+            sent, feed = _feed_recording(rec, sup, spec, speed, timings)
+        try:
             t_wait = time.perf_counter()
             _wait_for_the_twin(tap, spec, rec)
             timings["drain_s"] = time.perf_counter() - t_wait
             time.sleep(1.5)  # publishers' heartbeat; end-of-stream decisions
+        finally:
+            feed.__exit__(None, None, None)
+        if opcua:
+            written = len(feed.plant.commands)
         health = {k: v.model_dump(mode="json") for k, v in tap.health.items()}
     finally:
         codes = sup.stop()
         if tap is not None:
             tap.close()
-    return tap, stats.published, health, codes, sup.run_dir
+    return tap, sent, health, codes, sup.run_dir, written
 
 
 def prediction_error(measured: dict[float, float], predicted: dict[float, float]) -> dict:
@@ -430,10 +507,15 @@ def report_markdown(report: dict[str, Any]) -> str:
 
 
 def run_full_twin_demo(
-    recording: str | Path | None, out_dir: str | Path, speed: float = 200.0, echo: bool = True
+    recording: str | Path | None,
+    out_dir: str | Path,
+    speed: float = 200.0,
+    echo: bool = True,
+    opcua: bool = False,
 ) -> dict[str, Any]:
     """Run the live twin on ``recording`` (default: the bundled ``recordings/line1_30min.mcap``)
-    replayed at ``speed`` x real time (``inf``: as fast as the bus takes it); write
+    replayed (``opcua``: served by the loopback OPC UA plant and fed through ``twin bridge
+    opcua``) at ``speed`` x real time (``inf``: as fast as the bus takes it); write
     ``report.json``, ``report.md`` and ``outlet.png`` to ``out_dir``; return the report dict."""
     from services.recording import read_recording
 
@@ -445,7 +527,7 @@ def run_full_twin_demo(
     rec = read_recording(recording)
     spec = spec_for_recording(rec, free_port(), out / "state")
     timings: dict[str, float] = {}
-    tap, n_sent, health, codes, run_dir = _run_twin(rec, spec, speed, echo, timings)
+    tap, n_sent, health, codes, run_dir, written = _run_twin(rec, spec, speed, echo, timings, opcua)
     reference = reference_prediction(rec, spec)
     timings["total_s"] = time.perf_counter() - t0
     span = rec.duration_s
@@ -480,6 +562,8 @@ def run_full_twin_demo(
         "exit_codes": codes,
         "timings_s": timings,
         "run_dir": str(run_dir),
+        "feed": "opcua" if opcua else "replay",
+        "divert_commands_written_to_gate": written,
     }
     (out / "report.json").write_text(json.dumps(report, indent=2))
     _figure(out / "outlet.png", tap, spec, reference)

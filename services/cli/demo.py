@@ -40,7 +40,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         f"recording at {args.twin_speed:g}x; report and figure to {args.out}/",
         flush=True,
     )
-    report = run_full_twin_demo(recording, args.out, speed=args.twin_speed)
+    report = run_full_twin_demo(recording, args.out, speed=args.twin_speed, opcua=args.opcua)
     print(f"report: {Path(args.out) / 'report.md'}  figure: {Path(args.out) / 'outlet.png'}")
     healthy = (
         report["predictions"] > 0
@@ -76,5 +76,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--check-only", action="store_true", help="only the replay/record check (step 1)"
+    )
+    p.add_argument(
+        "--opcua",
+        action="store_true",
+        help="feed the live twin through the OPC UA bridge from a loopback OPC UA plant serving "
+        "the recording (divert commands written back to its gate node)",
     )
     p.set_defaults(func=cmd_demo)
