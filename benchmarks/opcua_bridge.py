@@ -76,9 +76,9 @@ def throughput(messages, run, span_s: float, speed: float) -> dict:
 
 def latency(messages, run, span_s: float, speed: float) -> dict:
     from schemas.line import LineSpec
-    from services.twin_demo import spec_for_recording
-    from services.supervisor import Supervisor
     from services.recording import read_recording
+    from services.supervisor import Supervisor
+    from services.twin_demo import spec_for_recording
 
     state = Path(tempfile.mkdtemp(prefix="opcua-bench-"))
     spec = spec_for_recording(read_recording(RECORDING), free_port(), state)
