@@ -45,7 +45,17 @@ __all__ = [
 ]
 
 #: the services ``twin up`` knows how to start
-SERVICE_NAMES = ("plant", "feeder", "blender", "rtd", "oos", "recorder", "dem", "closeloop")
+SERVICE_NAMES = (
+    "plant",
+    "feeder",
+    "blender",
+    "rtd",
+    "oos",
+    "recorder",
+    "dem",
+    "closeloop",
+    "bridge",
+)
 
 #: RTD models a declared blender may use (functions of ``twin_core.rtd.models``) and the names of
 #: their parameters, in call order
@@ -357,7 +367,9 @@ class LineSpec(LineConfig):
         default_factory=lambda: BusConfig(mode="router", listen=["tcp/127.0.0.1:7447"], connect=[])
     )
     services: list[
-        Literal["plant", "feeder", "blender", "rtd", "oos", "recorder", "dem", "closeloop"]
+        Literal[
+            "plant", "feeder", "blender", "rtd", "oos", "recorder", "dem", "closeloop", "bridge"
+        ]
     ] = Field(default_factory=lambda: ["feeder", "blender", "rtd", "oos"])
     feeder_mode: Literal["replay", "simulate"] = Field(
         "replay",
@@ -376,9 +388,16 @@ class LineSpec(LineConfig):
     )
     state_dir: str = Field(".twin-state", description="where services keep restart state")
     record_path: str | None = Field(None, description="MCAP file written by the recorder")
+    opcua_bridge: str | None = Field(
+        None,
+        description="BRIDGE.yaml of the bridge service (services: bridge; schemas.opcua), "
+        "absolute or relative to the working directory of twin up",
+    )
 
     @model_validator(mode="after")
     def _live_consistent(self) -> LineSpec:
+        if "bridge" in self.services and not self.opcua_bridge:
+            raise ValueError("opcua_bridge must name the BRIDGE.yaml when services has 'bridge'")
         comps = {f.component for f in self.feeders}
         for s in self.spec:
             if s.component not in comps:

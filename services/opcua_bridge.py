@@ -54,6 +54,9 @@ HISTORY = 20000
 #: closed connection fails at once; a busy client must not be taken for a dead server)
 LIVENESS_PERIOD_S = 0.5
 LIVENESS_TIMEOUT_S = 10.0
+#: an OPC UA request's timeout (a publish answer of many notifications on a loaded machine
+#: took more than asyncua's default 4 s)
+REQUEST_TIMEOUT_S = 30.0
 #: queue of one monitored item on the server between two publishes
 QUEUE_SIZE = 1000
 
@@ -94,19 +97,22 @@ class OpcuaBridge:
     def __init__(
         self,
         config: BridgeConfig,
-        bus: BusConfig,
+        bus: BusConfig | None,
         *,
         spec: Any = None,
         insecure: bool = False,
+        name: str = "plant",
         install_signal_handlers: bool = False,
     ) -> None:
-        why = refusal(config, bus, insecure)
+        # bus None: a supervised service's bus, from its environment (services.service)
+        self.svc = Service(name, bus, spec=spec, install_signal_handlers=install_signal_handlers)
+        why = refusal(config, self.svc.config, insecure)
         if why is not None:
+            self.svc.stop_flag.restore()
             raise ValueError(f"refusing to write divert commands, {why} (--insecure writes anyway)")
         if insecure and config.diverter is not None:
             log.warning("bridge: writing divert commands without security (--insecure)")
         self.config = config
-        self.svc = Service("plant", bus, spec=spec, install_signal_handlers=install_signal_handlers)
         self.assembler = MessageAssembler(config)
         self.counters: Counters = self.svc.counters
         self._lock = threading.Lock()
@@ -157,8 +163,7 @@ class OpcuaBridge:
         self.svc.close()
 
     def serve(self) -> int:
-        """Run until SIGINT/SIGTERM."""
-        self.svc.stop_flag = type(self.svc.stop_flag)(install=True)
+        """Run until SIGINT/SIGTERM (or :meth:`Service.stop`)."""
         with self:
             while not self.svc.stop_flag.wait(1.0):
                 pass
@@ -248,7 +253,7 @@ class OpcuaBridge:
 
     async def _client_session(self) -> Client:
         cfg = self.config
-        client = Client(cfg.endpoint, timeout=4)
+        client = Client(cfg.endpoint, timeout=REQUEST_TIMEOUT_S)
         client.session_timeout = 10000
         sec = cfg.security
         if sec.policy == "Basic256Sha256":
@@ -289,6 +294,7 @@ class OpcuaBridge:
                     self.counters.inc("reconnects")
                     log.warning("bridge: reconnected to %s", self.config.endpoint)
                 first = False
+                self.counters.inc("sessions")
                 self.connected.set()
                 while not self.svc.stopping:
                     await asyncio.sleep(LIVENESS_PERIOD_S)
@@ -314,6 +320,18 @@ class OpcuaBridge:
 
     def health(self) -> dict[str, int]:
         return self.counters.snapshot()
+
+
+def bridge_service(spec: Any, **kwargs: Any) -> OpcuaBridge:
+    """The bridge as a service of ``twin up`` (``services: [bridge]``, ``opcua_bridge:
+    BRIDGE.yaml``): identity ``bridge`` (the router lets it publish what the plant may), its
+    bus from the supervisor's environment, divert commands written under the same rules."""
+    config = BridgeConfig.from_file(spec.opcua_bridge)
+    if config.line != spec.name:
+        raise ValueError(f"line must be the twin's, got {config.line!r} for {spec.name!r}")
+    return OpcuaBridge(
+        config, None, spec=spec, name="bridge", install_signal_handlers=True, **kwargs
+    )
 
 
 def wait_for(predicate: Any, timeout_s: float, step_s: float = 0.02) -> bool:

@@ -83,8 +83,13 @@ def make_service(name: str, spec: LineSpec, **kwargs):
         from services.dem import DemService
 
         return DemService(spec, **kwargs)
+    if name == "bridge":
+        from services.opcua_bridge import bridge_service
+
+        return bridge_service(spec, **kwargs)
     raise ValueError(
-        f"service must be one of blender, oos, feeder, rtd, recorder, dem, closeloop, got {name!r}"
+        "service must be one of blender, oos, feeder, rtd, recorder, dem, closeloop, bridge, "
+        f"got {name!r}"
     )
 
 

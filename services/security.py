@@ -79,6 +79,7 @@ def published_keys(spec: LineSpec, identity: str) -> list[str]:
             keys.blender_drives(line),
         ],
     }
+    outputs["bridge"] = outputs["plant"]  # the OPC UA bridge is the plant's source of inputs
     if spec.feeder_mode == "simulate":
         outputs["feeder"] = [keys.feeder_flow(line, f.id) for f in spec.feeders]
     return outputs.get(identity, [])

@@ -72,7 +72,7 @@ from services.security import (
 
 log = logging.getLogger(__name__)
 
-SUPERVISED = ("feeder", "blender", "rtd", "oos", "recorder", "dem", "closeloop")
+SUPERVISED = ("feeder", "blender", "rtd", "oos", "recorder", "dem", "closeloop", "bridge")
 
 
 @dataclass

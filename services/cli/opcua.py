@@ -23,7 +23,13 @@ def cmd_bridge(args: argparse.Namespace) -> int:
     spec = LineSpec.from_file(args.line)
     if spec.name != config.line:
         raise ValueError(f"line must be the twin's, got {config.line!r} for {spec.name!r}")
-    bridge = OpcuaBridge(config, tool_bus(spec, "plant"), spec=spec, insecure=args.insecure)
+    bridge = OpcuaBridge(
+        config,
+        tool_bus(spec, "plant"),
+        spec=spec,
+        insecure=args.insecure,
+        install_signal_handlers=True,
+    )
     print(f"bridging {config.endpoint} -> line {spec.name} (Ctrl-C to stop)", flush=True)
     return bridge.serve()
 

@@ -20,8 +20,17 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 
-#: the processes of the live twin (``services.runner``)
-SERVICE_MODULES = ("blender", "oos", "rtd", "feeder", "closeloop", "recorder", "dem")
+#: the processes of the live twin (``services.runner``; ``bridge`` is ``opcua_bridge``)
+SERVICE_MODULES = (
+    "blender",
+    "oos",
+    "rtd",
+    "feeder",
+    "closeloop",
+    "recorder",
+    "dem",
+    "opcua_bridge",
+)
 #: what a service may build on besides schemas and twin_core: the bus and its one publisher and
 #: subscribers, the one service base, run-state helpers, MCAP recordings
 INFRASTRUCTURE = ("services.bus", "services.service", "services.common", "services.recording")

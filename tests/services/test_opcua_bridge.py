@@ -18,7 +18,7 @@ import pytest
 from schemas import keys
 from schemas.bus_config import BusConfig
 from schemas.line import LineSpec
-from schemas.messages import DivertCommand, Event
+from schemas.messages import DivertCommand, Event, ServiceHealth
 from services.bus import Publisher, free_port, open_session
 from services.opcua_bridge import OpcuaBridge, refusal, wait_for
 from services.opcua_plant import LoopbackPlant, recording_messages
@@ -83,7 +83,7 @@ async def _untyped_write(plant: LoopbackPlant, name: str, value, t: float) -> No
 
 def test_subscription_reconnect_and_bad_values(loop, messages):
     port = free_port()
-    plant = LoopbackPlant(messages, port=port, speed=400)
+    plant = LoopbackPlant(messages, port=port, speed=200)
     loop(plant.start())
     cfg = plant.bridge_config()
     flow = cfg.feeders[0].nodes["mass_flow_kg_h"]
@@ -117,7 +117,7 @@ def test_subscription_reconnect_and_bad_values(loop, messages):
         # 3. the server killed and started again: reconnect, samples missed counted, gap marked
         loop(plant.stop())
         assert wait_for(lambda: not bridge.connected.is_set(), 20)
-        plant2 = LoopbackPlant(messages, port=port, speed=400)
+        plant2 = LoopbackPlant(messages, port=port, speed=200)
         loop(plant2.start())
         assert bridge.connected.wait(30)
         loop(plant2.play(t_from=400, t_to=420))
@@ -234,3 +234,54 @@ def test_divert_written_back_only_from_the_diverter_and_only_secured(loop, messa
         loop(plant.stop())
         router.close()
         dictionary.close()
+
+
+def test_the_bridge_as_a_supervised_service(loop, messages, tmp_path):
+    """``services: [bridge]`` with ``opcua_bridge: BRIDGE.yaml``: ``twin up`` runs the bridge
+    as identity ``bridge`` on its secured bus (the router lets it publish the plant's inputs);
+    its messages reach a subscriber."""
+    import yaml
+
+    from services.supervisor import Supervisor
+
+    plant = LoopbackPlant(messages, port=free_port(), speed=100)
+    loop(plant.start())
+    bridge_yaml = tmp_path / "bridge.yaml"
+    bridge_yaml.write_text(
+        yaml.safe_dump(plant.bridge_config(diverter=None).model_dump(mode="json"))
+    )
+    spec = LineSpec.from_file(ROOT / "services" / "configs" / "line1_5pct.yaml")
+    spec = LineSpec.model_validate(
+        {
+            **spec.model_dump(),
+            "bus": {"mode": "router", "listen": [f"tcp/127.0.0.1:{free_port()}"], "connect": []},
+            "services": ["bridge"],
+            "opcua_bridge": str(bridge_yaml),
+            "state_dir": str(tmp_path / "state"),
+        }
+    )
+    got: list[str] = []
+    sessions: list[int] = []
+    try:
+        with Supervisor(spec, backoff_s=0.5) as sup:
+            assert sup.wait_ready(60)
+            with open_session(sup.client_config("operator")) as session:
+                sub = session.declare_subscriber(
+                    keys.feeder_flows(LINE), lambda s: got.append(str(s.key_expr))
+                )
+                health = session.declare_subscriber(
+                    keys.service_health(LINE, "bridge"),
+                    lambda s: sessions.append(
+                        ServiceHealth.model_validate_json(s.payload.to_bytes()).counters.get(
+                            "sessions", 0
+                        )
+                    ),
+                )
+                assert wait_for(lambda: max(sessions, default=0) >= 1, 30)  # OPC UA connected
+                loop(plant.play(t_to=20))
+                assert wait_for(lambda: len(got) >= 42, 20)
+                sub.undeclare()
+                health.undeclare()
+    finally:
+        loop(plant.stop())
+    assert sorted(set(got)) == [keys.feeder_flow(LINE, "api"), keys.feeder_flow(LINE, "excipient")]
