@@ -77,23 +77,15 @@ def _same(out: Path, source) -> None:
                 assert other == value, (k1, a.t, name)
 
 
+def _import(export: Path, cfg: Path, out: Path) -> int:
+    return main(["import", str(export), "--config", str(cfg), "--out", str(out)])
+
+
 def test_wide_and_per_tag_exports_give_the_recording(tmp_path, source, capsys):
     cfg = _mapping(tmp_path / "bridge.yaml", source)
     frame = _columns(source)
     frame.to_csv(tmp_path / "wide.csv", index=False)
-    assert (
-        main(
-            [
-                "import",
-                str(tmp_path / "wide.csv"),
-                "--config",
-                str(cfg),
-                "--out",
-                str(tmp_path / "wide.mcap"),
-            ]
-        )
-        == 0
-    )
+    assert _import(tmp_path / "wide.csv", cfg, tmp_path / "wide.mcap") == 0
     _same(tmp_path / "wide.mcap", source)
     folder = tmp_path / "tags"
     folder.mkdir()
@@ -103,10 +95,7 @@ def test_wide_and_per_tag_exports_give_the_recording(tmp_path, source, capsys):
         frame[["timestamp", col]].rename(columns={col: f"value [{unit}]"}).to_csv(
             folder / f"{tag}.csv", index=False
         )
-    assert (
-        main(["import", str(folder), "--config", str(cfg), "--out", str(tmp_path / "tags.mcap")])
-        == 0
-    )
+    assert _import(folder, cfg, tmp_path / "tags.mcap") == 0
     _same(tmp_path / "tags.mcap", source)
 
 
@@ -120,19 +109,7 @@ def test_gaps_duplicates_and_units_are_reported_never_guessed(tmp_path, source, 
     frame = pd.concat([frame, conflict], ignore_index=True)
     frame.loc[30:39, "nir_api [fraction]"] = None
     frame.to_csv(tmp_path / "wide.csv", index=False)
-    assert (
-        main(
-            [
-                "import",
-                str(tmp_path / "wide.csv"),
-                "--config",
-                str(cfg),
-                "--out",
-                str(tmp_path / "out.mcap"),
-            ]
-        )
-        == 0
-    )
+    assert _import(tmp_path / "wide.csv", cfg, tmp_path / "out.mcap") == 0
     err = capsys.readouterr().err
     assert "gap: nir_api: 10 samples missing between 29.000 s and 40.000 s" in err
     assert "duplicates: nir_api: 2 repeated stamps (1 with different values, dropped)" in err
@@ -162,19 +139,7 @@ def test_unit_mismatch_and_unknown_unit_refused_in_one_line(
     _columns(source).rename(columns={"nir_api [fraction]": header}).to_csv(
         tmp_path / "wide.csv", index=False
     )
-    assert (
-        main(
-            [
-                "import",
-                str(tmp_path / "wide.csv"),
-                "--config",
-                str(cfg),
-                "--out",
-                str(tmp_path / "out.mcap"),
-            ]
-        )
-        == 2
-    )
+    assert _import(tmp_path / "wide.csv", cfg, tmp_path / "out.mcap") == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {message}")
     assert not (tmp_path / "out.mcap").exists()
