@@ -19,6 +19,7 @@ historian or PAT-software export, where a node's ``tag`` names its column or fil
     sensor: {id: nir1, component: api, sample_period_s: 1.0,
              node: {node_id: "ns=2;s=NIR.API", unit: "fraction"}}
     tracer: {component: api, node: {node_id: "ns=2;s=Tracer.Mass", unit: "g"}}
+    blender: {id: blender, node: {node_id: "ns=2;s=Blender.BladeSpeed", unit: "rpm"}}
     diverter: {node_id: "ns=2;s=Gate.Command"}
     security: {policy: Basic256Sha256, mode: SignAndEncrypt, certificate: client.der,
                private_key: client.pem, user: twin, password_file: opcua.pw}
@@ -177,6 +178,19 @@ class TracerMap(StrictModel):
         return self
 
 
+class BlenderMap(StrictModel):
+    """The blender's blade drive (``BlenderDrive`` on ``twin/<line>/blender/<id>/drive``)."""
+
+    id: Ident = "blender"
+    sample_period_s: Positive = Field(1.0, description="the drive's update period, s")
+    node: NodeMap
+
+    @model_validator(mode="after")
+    def _rotation(self) -> BlenderMap:
+        _check_quantity("node", self.node, "rotation")
+        return self
+
+
 class DiverterMap(StrictModel):
     """The diversion gate's command node (a String node): the bridge writes there the JSON of
     each ``DivertCommand`` the twin's diverter issued."""
@@ -232,6 +246,7 @@ class BridgeConfig(StrictModel):
     feeders: list[FeederMap] = Field(min_length=1)
     sensor: SensorMap
     tracer: TracerMap | None = None
+    blender: BlenderMap | None = None
     diverter: DiverterMap | None = None
     security: OpcuaSecurity = Field(default_factory=OpcuaSecurity)
     publishing_interval_ms: Positive = Field(
@@ -265,8 +280,10 @@ class BridgeConfig(StrictModel):
         return self
 
     def nodes(self) -> list[NodeMap]:
-        """Every mapped input node (feeders, sensor, tracer)."""
+        """Every mapped input node (feeders, sensor, tracer, blender drive)."""
         out = [n for f in self.feeders for n in f.nodes.values()] + [self.sensor.node]
         if self.tracer is not None:
             out.append(self.tracer.node)
+        if self.blender is not None:
+            out.append(self.blender.node)
         return out

@@ -3,7 +3,8 @@ would, for tests, demos and benchmarks of ``twin bridge opcua``.
 
 An asyncua server (the same library as the bridge) with one variable per mapped field (feeder
 mass flow, set point, screw speed, hopper mass, feed factor, refill flag; the NIR
-concentration; the tracer mass of the last injection) and a writable String node for the
+concentration; the tracer mass of the last injection; the blade speed when the recording
+reports the blender's drive) and a writable String node for the
 diversion gate's command. :meth:`LoopbackPlant.play` writes the recording's values tick by
 tick in plant time at ``speed`` x real time, each value stamped with its plant time as OPC UA
 source timestamp (``epoch + t``), every node of a tick with the same stamp; the commands the
@@ -30,7 +31,7 @@ from asyncua.crypto.permission_rules import SimpleRoleRuleset, User, UserRole
 from asyncua.server.user_managers import UserManager
 
 from schemas import keys
-from schemas.messages import Event, FeederFlow, MeasuredConcentration
+from schemas.messages import BlenderDrive, Event, FeederFlow, MeasuredConcentration
 from schemas.opcua import BridgeConfig
 
 log = logging.getLogger(__name__)
@@ -92,7 +93,7 @@ class LoopbackPlant:
         self.messages = [
             (k, m)
             for k, m in messages
-            if isinstance(m, (FeederFlow, MeasuredConcentration))
+            if isinstance(m, (FeederFlow, MeasuredConcentration, BlenderDrive))
             or (isinstance(m, Event) and m.kind == "tracer_pulse")
         ]
         if not self.messages:
@@ -110,6 +111,7 @@ class LoopbackPlant:
         self.feeders: dict[str, str] = {}
         self.sensor: tuple[str, str] | None = None
         self.tracer: str | None = None
+        self.blender: str | None = None
         for key, m in self.messages:
             if isinstance(m, FeederFlow):
                 self.feeders.setdefault(keys.parse_key(key).id, m.component)
@@ -117,6 +119,8 @@ class LoopbackPlant:
                 self.sensor = (m.sensor, m.component)
             elif isinstance(m, Event):
                 self.tracer = self.tracer or m.component
+            elif isinstance(m, BlenderDrive):
+                self.blender = self.blender or keys.parse_key(key).id
         if self.sensor is None:
             raise ValueError("the loopback plant needs a PAT concentration, got none")
         self.server: Server | None = None
@@ -150,6 +154,11 @@ class LoopbackPlant:
             },
             "diverter": {"node_id": node_id("Gate.Command")},
         }
+        if self.blender is not None:
+            data["blender"] = {
+                "id": self.blender,
+                "node": {"node_id": node_id(f"{self.blender}.BladeSpeed"), "unit": "rpm"},
+            }
         if self.tracer is not None:
             data["tracer"] = {
                 "component": self.tracer,
@@ -207,6 +216,8 @@ class LoopbackPlant:
         names.append(f"{self.sensor[0]}.Concentration")
         if self.tracer is not None:
             names.append("Tracer.Mass")
+        if self.blender is not None:
+            names.append(f"{self.blender}.BladeSpeed")
         return names
 
     async def stop(self) -> None:
@@ -242,6 +253,8 @@ class LoopbackPlant:
                 await self.write(f"{m.sensor}.Concentration", m.concentration_pct_w_w, t)
             elif isinstance(m, Event) and m.mass_kg:
                 await self.write("Tracer.Mass", m.mass_kg, t)
+            elif isinstance(m, BlenderDrive):
+                await self.write(f"{keys.parse_key(key).id}.BladeSpeed", m.blade_speed_rpm, t)
 
     async def play(
         self, *, t_from: float = 0.0, t_to: float | None = None, on_tick: Any = None

@@ -9,9 +9,9 @@ time, raw value)``).
   1 rev/s = 60 rev/min, fraction 1 = 100 % w/w); NaN/inf, a wrong type (text, a missing
   value) and a value outside ``[valid_min, valid_max]`` are refused (:class:`BadValue`, with
   the reason the bridge counts: ``rejected_nan``, ``rejected_type``, ``rejected_range``).
-- :class:`MessageAssembler`: the samples of one unit (feeder, sensor, tracer) with the same
-  source time become one message (``FeederFlow``, ``MeasuredConcentration``, a
-  ``tracer_pulse`` ``Event``) once every node of the unit has reported that time or a later
+- :class:`MessageAssembler`: the samples of one unit (feeder, sensor, tracer, blender drive)
+  with the same source time become one message (``FeederFlow``, ``MeasuredConcentration``, a
+  ``tracer_pulse`` ``Event``, ``BlenderDrive``) once every node of the unit has reported that time or a later
   one (OPC UA keeps the order of each monitored item's notifications, not across items), in
   time order per unit. A node the mapping declares ``stamped: on_change`` (a PLC stamping it
   only when its value changes) is not waited for: its field takes the node's last value
@@ -34,7 +34,7 @@ from typing import Any
 
 from schemas import keys
 from schemas.base import Message
-from schemas.messages import Event, FeederFlow, MeasuredConcentration
+from schemas.messages import BlenderDrive, Event, FeederFlow, MeasuredConcentration
 from schemas.opcua import UNITS, BridgeConfig, NodeMap
 
 __all__ = [
@@ -167,6 +167,20 @@ class MessageAssembler:
                     {"mass_kg": tr.node},
                     None,
                     self._tracer_builder(tr.component, tr.duration_s),
+                )
+            )
+
+        if config.blender is not None:
+            b = config.blender
+            self._add(
+                _Unit(
+                    f"blender {b.id}",
+                    keys.blender_drive(line, b.id),
+                    {"blade_speed_rpm": b.node},
+                    b.sample_period_s,
+                    lambda t, seq, v: BlenderDrive(
+                        t=t, seq=seq, blade_speed_rpm=v["blade_speed_rpm"]
+                    ),
                 )
             )
 

@@ -173,3 +173,15 @@ def test_a_refused_value_drops_its_time_as_a_missed_sample():
             out += a.add(node, t, raw)[0]
     assert [(m.t, m.seq) for _, m in out] == [(0.0, 0), (2.0, 2)]
     assert a.counters["dropped"] == 1 and a.counters["samples_missed"] == 1
+
+
+def test_blade_speed_becomes_the_blender_drive():
+    """The blender's blade speed node (rev/s) is the contract's ``BlenderDrive`` in rev/min."""
+    from schemas.messages import BlenderDrive
+
+    cfg = _config(blender={"node": {"node_id": "blade", "unit": "rev/s"}})
+    ((key, msg),) = MessageAssembler(cfg).add("blade", 5.0, 2.5)[0]
+    assert key == "twin/line1/blender/blender/drive"
+    assert isinstance(msg, BlenderDrive) and msg.blade_speed_rpm == pytest.approx(150.0)
+    with pytest.raises(ValidationError, match="node.unit must be a unit of rotation"):
+        _config(blender={"node": {"node_id": "blade", "unit": "kg/h"}})
