@@ -253,8 +253,12 @@ class OpcuaBridge:
 
     async def _client_session(self) -> Client:
         cfg = self.config
-        client = Client(cfg.endpoint, timeout=REQUEST_TIMEOUT_S)
-        client.session_timeout = 10000
+        # asyncua's own watchdog probes the server with min(session timeout / 2, interval): 1 s
+        # by default, which a loaded machine missed (a needless reconnect, samples lost)
+        client = Client(
+            cfg.endpoint, timeout=REQUEST_TIMEOUT_S, watchdog_intervall=LIVENESS_TIMEOUT_S
+        )
+        client.session_timeout = 60000
         sec = cfg.security
         if sec.policy == "Basic256Sha256":
             mode = getattr(ua.MessageSecurityMode, sec.mode)

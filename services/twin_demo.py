@@ -376,6 +376,10 @@ def _run_twin(
             _wait_for_the_twin(tap, spec, rec)
             timings["drain_s"] = time.perf_counter() - t_wait
             time.sleep(1.5)  # publishers' heartbeat; end-of-stream decisions
+            if opcua:  # the last divert commands on their way to the gate
+                deadline = time.monotonic() + 10
+                while len(feed.plant.commands) < len(tap.diverts) and time.monotonic() < deadline:
+                    time.sleep(0.05)
         finally:
             feed.__exit__(None, None, None)
         if opcua:
