@@ -139,8 +139,13 @@ class OpcuaBridge:
                 keys.event(self.config.line, "plant", "opcua"), history=history
             )
             if self.config.diverter is not None:
+                # commands are not in plant-time order (an alert's final command can follow a
+                # later window's early one): deduplicated by command id, not ordered by t
                 svc.subscribe(
-                    keys.divert_command(self.config.line), self._on_divert, model=DivertCommand
+                    keys.divert_command(self.config.line),
+                    self._on_divert,
+                    model=DivertCommand,
+                    check_time=False,
                 )
         except BaseException:
             svc.close()
