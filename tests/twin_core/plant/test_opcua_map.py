@@ -185,3 +185,21 @@ def test_blade_speed_becomes_the_blender_drive():
     assert isinstance(msg, BlenderDrive) and msg.blade_speed_rpm == pytest.approx(150.0)
     with pytest.raises(ValidationError, match="node.unit must be a unit of rotation"):
         _config(blender={"node": {"node_id": "blade", "unit": "kg/h"}})
+
+
+def test_the_close_loop_reads_a_bridge_gap_as_missing_data():
+    """The close-loop's data-quality step (``stamp_flags``: a stamp gap with a sequence gap is
+    missing data, one without is a clock jump) sees the assembler's gap as a ``gap`` of the
+    missed samples, not as a ``time_jump``."""
+    import numpy as np
+
+    from twin_core.closeloop.data import StreamStamps
+    from twin_core.closeloop.quality import stamp_flags
+
+    a = MessageAssembler(_config())
+    msgs = [m for t in [*range(10), *range(20, 30)] for _, m in a.add("c", float(t), 0.05)[0]]
+    stamps = StreamStamps(np.array([m.t for m in msgs]), np.array([m.seq for m in msgs]))
+    flags = stamp_flags("nir", stamps, 1.0)
+    assert [(f.kind, f.t_start_s, f.t_end_s, f.n_samples) for f in flags] == [
+        ("gap", 10.0, 19.0, 10)
+    ]
