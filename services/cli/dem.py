@@ -1,7 +1,7 @@
 """``twin dem run SCENE.yaml [--out DIR] [--resume] [--threads N]``: run a DEM scene of the seed
 (blender section, drawdown test, feeder, silo) from its config file and write results, fields,
 frames, STL geometry and PNG figures. ``twin dem warmup``: compile the engine's kernels into
-numba's cache, saying what it compiles (``make`` runs it after installing)."""
+numba's cache, saying what it compiles (once after installing; ``twin dem run`` runs it first)."""
 
 from __future__ import annotations
 
