@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-seeds lint bench clean
+.PHONY: demo test test-seeds lint bench clean browser
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -14,7 +14,20 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/twin demo
 
-test: $(STAMP)
+# headless Chromium and its driver for the dashboard's browser test (Debian packages), installed
+# when missing and apt-get is usable (root); otherwise that test is skipped and says why
+browser:
+	@if [ ! -x /usr/bin/chromium ] || [ ! -x /usr/bin/chromedriver ]; then \
+		if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+			apt-get install -y -q chromium chromium-driver >/dev/null \
+			|| { apt-get update -q >/dev/null && apt-get install -y -q chromium chromium-driver >/dev/null; } \
+			|| echo "make: could not install chromium chromium-driver: the browser test is skipped"; \
+		else \
+			echo "make: chromium or chromedriver missing and apt-get not usable: the browser test is skipped"; \
+		fi; \
+	fi
+
+test: $(STAMP) browser
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -n 2 --dist loadfile -q
 
 # the DEM trend tests again on other samples of the same physics (other scene seeds)

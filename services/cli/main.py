@@ -24,6 +24,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "demo",  # twin demo
     "bus",  # twin record / replay / inspect / recover / schemas / router
     "live",  # twin up / status / alerts / plant simulate
+    "dashboard",  # twin dashboard
     "rtd",  # twin rtd analyze / funnel / lots / reproduce
     "dem",  # twin dem run
     "calibrate",  # twin calibrate design / fit / solve ; twin feeder simulate

@@ -1,0 +1,467 @@
+"""``twin dashboard``: the live twin (or a recording) in the browser, a Bokeh server on loopback.
+
+Why Bokeh server: it is a maintained library for live plots whose server ships its own
+BokehJS with the Python package (no CDN: the page works on a plant network without internet),
+keeps each browser's document in sync over one websocket, and streams only the changed data
+sources; the plots are Bokeh models built in Python, no hand-written plotting JavaScript.
+
+Data path (the page never waits on the bus):
+
+    zenoh callback / recording thread --put--> queue --every period_ms--> DashboardState
+        --view (decimated, twin_core.online.dashboard_state)--> ColumnDataSources --> browser
+
+The feed's thread only puts ``(key, message)`` on a queue. A periodic callback of each
+document (``period_ms``, 200 ms by default) drains the queue into the one
+:class:`~twin_core.online.dashboard_state.DashboardState`, and, when it changed, replaces the
+sources' data with the state's decimated view (at most ``max_points`` per series), so a 200x
+replay costs the browser a bounded amount of work per period and never lags more than a period
+plus the drawing.
+"""
+
+from __future__ import annotations
+
+import html
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from schemas import keys
+from schemas.line import LineSpec
+from schemas.messages import DivertCommand, OosAlert
+from services.bus import AlertFeed, TypedSubscriber
+from services.recording import Recording, replay
+from twin_core.online.dashboard_state import DashboardState, DashboardView, Window
+
+log = logging.getLogger(__name__)
+
+#: how often each page takes the queued messages in, ms
+DEFAULT_PERIOD_MS = 200
+#: points per plotted series at most
+DEFAULT_MAX_POINTS = 1500
+#: plant time shown in the plots, s (the last hour)
+DEFAULT_WINDOW_S = 3600.0
+
+ALERT_COLOR = "#d62728"
+DIVERT_COLOR = "#ff7f0e"
+REFILL_COLOR = "#2ca02c"
+
+
+@dataclass
+class RejectedMessage:
+    """A recorded message that did not validate (counted on the page as ``RejectedMessage``)."""
+
+    t: float
+    detail: str
+
+
+class DashboardHub:
+    """The one state behind every page: a queue the feeds put on, drained on the server's
+    thread (:meth:`drain`), and the state's decimated view cached per version."""
+
+    def __init__(self, spec: LineSpec, max_points: int = DEFAULT_MAX_POINTS) -> None:
+        self.spec = spec
+        self.max_points = max_points
+        self.state = DashboardState()
+        self._queue: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
+        self._view: tuple[int, DashboardView] | None = None
+        self.source = "bus"
+        self.finished = threading.Event()
+
+    def put(self, key: str, msg: Any) -> None:
+        """Hand one validated message over (any thread; never blocks)."""
+        self._queue.put((key, msg))
+
+    def drain(self) -> int:
+        """Move every queued message into the state (the server's thread); how many."""
+        n = 0
+        while True:
+            try:
+                key, msg = self._queue.get_nowait()
+            except queue.Empty:
+                return n
+            self.state.add(key, msg)
+            n += 1
+
+    def view(self) -> DashboardView:
+        """The decimated view of the current state (computed once per state version)."""
+        if self._view is None or self._view[0] != self.state.version:
+            self._view = (self.state.version, self.state.view(self.max_points))
+        return self._view[1]
+
+
+# ------------------------------------------------------------------------------------ feeds
+
+
+class BusFeed:
+    """Every message of the line on the bus to the hub: one typed subscriber on the line's keys
+    (invalid ones counted and dropped, as a service does) and, for alerts and divert commands,
+    the diverter's history as well (a page opened late shows the alerts raised before)."""
+
+    def __init__(self, session: Any, hub: DashboardHub) -> None:
+        line = hub.spec.name
+        self._sub = TypedSubscriber(
+            session,
+            keys.everything(line),
+            self._on_message,
+            allow_unknown=False,
+            name="dashboard",
+        )
+        self._alerts = AlertFeed(session, line, hub.put, divert=True)
+        self._hub = hub
+        self.counters = self._sub.counters
+
+    def _on_message(self, key: str, msg: Any) -> None:
+        if not isinstance(msg, OosAlert | DivertCommand):  # these come through the AlertFeed
+            self._hub.put(key, msg)
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+        self._alerts.undeclare()
+
+
+def start_recording_feed(
+    rec: Recording, hub: DashboardHub, speed: float, should_stop: Callable[[], bool]
+) -> threading.Thread:
+    """Replay ``rec`` into the hub at ``speed`` times real time on a thread
+    (``services.recording.replay``: the same schedule as ``twin replay``); the hub's
+    :attr:`~DashboardHub.finished` is set at its end."""
+
+    def publish(key: str, payload: bytes) -> None:
+        model = keys.model_for_key(key)
+        if model is None:
+            return
+        try:
+            hub.put(key, model.model_validate_json(payload))
+        except ValueError as exc:  # a recorded message that does not validate: counted, skipped
+            hub.put(key, RejectedMessage(t=0.0, detail=str(exc)))
+
+    def run() -> None:
+        try:
+            replay(rec, publish, speed=speed, should_stop=should_stop)
+        finally:
+            hub.finished.set()
+
+    hub.source = f"recording {rec.path.name if rec.path else ''} at {speed:g}x"
+    thread = threading.Thread(target=run, name="dashboard-recording", daemon=True)
+    thread.start()
+    return thread
+
+
+# ------------------------------------------------------------------------------------ page
+
+
+def _table(header: list[str], rows: list[list[str]], attrs: list[str] | None = None) -> str:
+    """An HTML table (cells already escaped); ``attrs``: extra attributes of each row."""
+    head = "".join(f"<th>{h}</th>" for h in header)
+    body = "".join(
+        f"<tr {attrs[i] if attrs else ''}>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>"
+        for i, r in enumerate(rows)
+    )
+    return f"<table class='twin'><tr>{head}</tr>{body}</table>"
+
+
+def _esc(value: Any) -> str:
+    return html.escape(str(value))
+
+
+def alerts_html(view: DashboardView) -> str:
+    """The OOS alerts, newest first; each row carries ``data-alert-id``."""
+    rows = sorted(view.alerts, key=lambda a: a["t_start_s"], reverse=True)
+    if not rows:
+        return "<b>OOS alerts</b><p>none</p>"
+    cells = [
+        [
+            _esc(a["alert_id"]),
+            f"{a['t_start_s']:.0f}-{a['t_end_s']:.0f}",
+            f"{a['peak_deviation_pct_w_w']:+.2f} (limit {a['limit_pct_w_w']:.2f})",
+            _esc(a["cause"]),
+        ]
+        for a in rows
+    ]
+    attrs = [f"class='alert' data-alert-id='{_esc(a['alert_id'])}'" for a in rows]
+    return "<b>OOS alerts</b>" + _table(
+        ["alert", "window, s", "peak deviation, % w/w", "cause"], cells, attrs
+    )
+
+
+def _window_text(w: Window) -> str:
+    return f"{w.t_start_s:.0f}-{w.t_end_s:.0f} s"
+
+
+def diverter_html(view: DashboardView) -> str:
+    """The gate now and its upcoming divert windows."""
+    d = view.diverter
+    state = (
+        f"<span class='diverting'>DIVERTING ({_window_text(d.current)})</span>"
+        if d.current is not None
+        else "<span class='accepting'>accepting</span>"
+    )
+    upcoming = ", ".join(_window_text(w) for w in d.upcoming[:8]) or "none"
+    return f"<b>Diverter</b> at {d.t_s:.0f} s: {state}<br>upcoming divert windows: {upcoming}"
+
+
+def blender_html(view: DashboardView) -> str:
+    """The blender's model and the RTD estimates, newest first."""
+    rows = [
+        [
+            f"{e['t']:.0f}",
+            _esc(e["model"]),
+            f"{e['mean_residence_time_s']:.1f}",
+            _esc(", ".join(f"{k}={v:.4g}" for k, v in e["params"].items())),
+            "" if e["applies_from_s"] is None else f"{e['applies_from_s']:.0f}",
+        ]
+        for e in reversed(view.rtd_estimates[-10:])
+    ]
+    table = (
+        _table(["t, s", "model", "MRT, s", "parameters", "applies from, s"], rows)
+        if rows
+        else "<p>no RTD estimate yet</p>"
+    )
+    model = _esc(view.blender_model or "no prediction yet")
+    return f"<b>Blender model</b>: {model}<br><b>RTD estimates</b>{table}"
+
+
+def findings_html(view: DashboardView) -> str:
+    """The close-loop findings, newest first, with their status."""
+    rows = [
+        [
+            _esc(f["finding_id"]),
+            f"<span class='status-{_esc(f['status'])}'>{_esc(f['status'])}</span>",
+            f"{f['t_start_s']:.0f}-{f['t_end_s']:.0f}",
+            _esc(", ".join(f["effects"]) or "-"),
+            "yes" if f["product_at_risk"] else "no",
+        ]
+        for f in reversed(view.findings[-10:])
+    ]
+    if not rows:
+        return "<b>Close-loop findings</b><p>none yet</p>"
+    return "<b>Close-loop findings</b>" + _table(
+        ["finding", "status", "window, s", "effects", "product at risk"], rows
+    )
+
+
+def health_html(view: DashboardView, now_unix: float) -> str:
+    """Each service's health (state, plant time, age of the report, counters) and the page's
+    own message counters."""
+    rows = [
+        [
+            _esc(name),
+            _esc(h["state"]),
+            f"{h['t']:.0f}",
+            f"{max(0.0, now_unix - h['wall_time_unix_s']):.1f}",
+            _esc(", ".join(f"{k}={v}" for k, v in sorted(h["counters"].items()))),
+        ]
+        for name, h in view.health.items()
+    ]
+    table = (
+        _table(["service", "state", "plant t, s", "report age, s", "counters"], rows)
+        if rows
+        else "<p>no service reports (a recording, or no twin running)</p>"
+    )
+    counts = ", ".join(f"{k}={v}" for k, v in sorted(view.counters.items()))
+    return f"<b>Services</b>{table}<b>Messages seen</b>: {_esc(counts) or 'none'}"
+
+
+def status_html(hub: DashboardHub, view: DashboardView) -> str:
+    """The header: line, source, plant time, newest NIR sample time (``data-nir-t``)."""
+    nir = [s for name, s in view.series.items() if name.startswith("measured:")]
+    nir_t = max((s["t"][-1] for s in nir if s["t"]), default=None)
+    nir_text = "-" if nir_t is None else f"{nir_t:.0f} s"
+    return (
+        f"<span class='title'>powder-twin {_esc(hub.spec.name)}</span> &middot; "
+        f"{_esc(hub.source)} &middot; plant time {view.now_s:.0f} s &middot; "
+        f"<span class='nir-t' data-nir-t='{'' if nir_t is None else f'{nir_t:g}'}'>"
+        f"newest NIR sample {nir_text}</span>"
+    )
+
+
+STYLE = """
+<style>
+table.twin { border-collapse: collapse; font-size: 12px; margin: 2px 0 6px 0; }
+table.twin td, table.twin th { border: 1px solid #ccc; padding: 1px 6px; text-align: left; }
+tr.alert td { background: #fde0e0; }
+.diverting { color: #b00; font-weight: bold; }
+.accepting { color: #070; }
+.title { font-weight: bold; font-size: 16px; }
+.status-unexplained, .status-partly_explained { color: #b00; }
+.status-consistent, .status-explained { color: #070; }
+</style>
+"""
+
+
+class Page:
+    """The Bokeh document of one browser: plots and panels, refreshed from the hub."""
+
+    def __init__(self, doc: Any, hub: DashboardHub, period_ms: int, window_s: float) -> None:
+        from bokeh.layouts import column, row
+        from bokeh.models import ColumnDataSource, Div
+
+        self.hub = hub
+        self.window_s = window_s
+        self.version = -1
+        spec = hub.spec
+        limits = spec.limits(spec.sensor.component)
+        self.sources: dict[str, ColumnDataSource] = {}
+        self.conc = self._concentration_figure(spec, limits)
+        self.flows = self._flow_figure(spec)
+        self.divs = {
+            name: Div(name=name, text="", sizing_mode="stretch_width")
+            for name in ("status", "diverter", "alerts", "blender", "findings", "health")
+        }
+        style = Div(text=STYLE)
+        doc.title = f"powder-twin {spec.name}"
+        doc.add_root(
+            column(
+                style,
+                self.divs["status"],
+                row(self.conc, column(self.divs["diverter"], self.divs["alerts"], width=520)),
+                row(self.flows, column(self.divs["blender"], self.divs["findings"], width=520)),
+                self.divs["health"],
+                sizing_mode="stretch_width",
+            )
+        )
+        self.refresh()
+        doc.add_periodic_callback(self.refresh, period_ms)
+
+    def _source(self, name: str, columns: tuple[str, ...]) -> Any:
+        from bokeh.models import ColumnDataSource
+
+        src = ColumnDataSource({c: [] for c in columns}, name=name)
+        self.sources[name] = src
+        return src
+
+    def _concentration_figure(self, spec: LineSpec, limits: Any) -> Any:
+        from bokeh.models import Span
+        from bokeh.plotting import figure
+
+        comp = spec.sensor.component
+        fig = figure(
+            name="concentration",
+            title=f"outlet {comp}: measured vs predicted, % w/w",
+            height=340,
+            width=900,
+            x_axis_label="plant time, s",
+            tools="xpan,xwheel_zoom,reset,save",
+        )
+        alerts = self._source("alert_windows", ("x0", "x1"))
+        fig.vstrip(x0="x0", x1="x1", source=alerts, color=ALERT_COLOR, alpha=0.15)
+        diverts = self._source("divert_windows", ("x0", "x1"))
+        fig.vstrip(x0="x0", x1="x1", source=diverts, color=DIVERT_COLOR, alpha=0.25)
+        pred = self._source(f"predicted:{comp}", ("t", "y", "lower", "upper"))
+        fig.varea(x="t", y1="lower", y2="upper", source=pred, color="#1f77b4", alpha=0.2)
+        fig.line("t", "y", source=pred, color="#1f77b4", line_width=2, legend_label="predicted")
+        src = self._source(f"measured:{spec.sensor.id}", ("t", "y"))
+        fig.scatter("t", "y", source=src, size=3, color="black", legend_label="NIR measured")
+        if limits is not None:
+            fig.add_layout(
+                Span(location=limits.target_pct_w_w, dimension="width", line_dash="dashed")
+            )
+            for bound in (limits.lower_pct_w_w, limits.upper_pct_w_w):
+                fig.add_layout(Span(location=bound, dimension="width", line_color=ALERT_COLOR))
+        fig.legend.location = "top_left"
+        return fig
+
+    def _flow_figure(self, spec: LineSpec) -> Any:
+        from bokeh.palettes import Category10_10
+        from bokeh.plotting import figure
+
+        fig = figure(
+            name="flows",
+            title="feeder mass flows, kg/h (refills shaded)",
+            height=300,
+            width=900,
+            x_axis_label="plant time, s",
+            tools="xpan,xwheel_zoom,reset,save",
+        )
+        fig.x_range = self.conc.x_range
+        refills = self._source("refill_windows", ("x0", "x1"))
+        fig.vstrip(x0="x0", x1="x1", source=refills, color=REFILL_COLOR, alpha=0.2)
+        for i, feeder in enumerate(spec.feeders):
+            src = self._source(f"flow:{feeder.id}", ("t", "y"))
+            fig.line("t", "y", source=src, color=Category10_10[i % 10], legend_label=feeder.id)
+        fig.legend.location = "top_left"
+        return fig
+
+    def refresh(self) -> None:
+        """Take the queued messages in; redraw what changed (the server's thread)."""
+        self.hub.drain()
+        if self.hub.state.version == self.version:
+            return
+        self.version = self.hub.state.version
+        view = self.hub.view()
+        t_min = view.now_s - self.window_s
+        for name, series in view.series.items():
+            src = self.sources.get(name)
+            if src is not None:
+                src.data = _in_window(series, t_min)
+        self.sources["alert_windows"].data = _strips(
+            [(a["t_start_s"], a["t_end_s"]) for a in view.alerts]
+        )
+        self.sources["divert_windows"].data = _strips(
+            [(w.t_start_s, w.t_end_s) for w in view.divert_windows]
+        )
+        self.sources["refill_windows"].data = _strips(
+            [(w.t_start_s, w.t_end_s) for ws in view.refill_windows.values() for w in ws]
+        )
+        self.divs["status"].text = status_html(self.hub, view)
+        self.divs["diverter"].text = diverter_html(view)
+        self.divs["alerts"].text = alerts_html(view)
+        self.divs["blender"].text = blender_html(view)
+        self.divs["findings"].text = findings_html(view)
+        self.divs["health"].text = health_html(view, time.time())
+
+
+def _in_window(series: dict[str, list[float]], t_min: float) -> dict[str, list[float]]:
+    """The part of a decimated series at plant time >= ``t_min``."""
+    first = next((i for i, t in enumerate(series["t"]) if t >= t_min), len(series["t"]))
+    return {k: v[first:] for k, v in series.items()}
+
+
+def _strips(windows: list[tuple[float, float]]) -> dict[str, list[float]]:
+    return {"x0": [w[0] for w in windows], "x1": [w[1] for w in windows]}
+
+
+# ------------------------------------------------------------------------------------ server
+
+
+def make_server(
+    hub: DashboardHub,
+    *,
+    address: str = "127.0.0.1",
+    port: int = 5006,
+    period_ms: int = DEFAULT_PERIOD_MS,
+    window_s: float = DEFAULT_WINDOW_S,
+) -> Any:
+    """A Bokeh server (not started) serving the dashboard at ``/`` on ``address:port``; its
+    BokehJS comes from the bokeh package (``resources="server"``), nothing from the internet."""
+    from bokeh.application import Application
+    from bokeh.application.handlers.function import FunctionHandler
+    from bokeh.server.server import Server
+
+    def make_document(doc: Any) -> None:
+        Page(doc, hub, period_ms, window_s)
+
+    origins = [f"{address}:{port}"] + ([f"localhost:{port}"] if address == "127.0.0.1" else [])
+    return Server(
+        {"/": Application(FunctionHandler(make_document))},
+        address=address,
+        port=port,
+        allow_websocket_origin=origins,
+        num_procs=1,
+    )
+
+
+def is_loopback(address: str) -> bool:
+    """Whether ``address`` is a loopback address (``127.0.0.0/8``, ``::1``, ``localhost``)."""
+    import ipaddress
+
+    if address == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(address).is_loopback
+    except ValueError:
+        return False

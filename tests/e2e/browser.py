@@ -1,0 +1,164 @@
+"""Headless Chromium on the dashboard (Selenium with Debian's ``chromium`` and
+``chromium-driver``; ``make test`` installs them when it can), and what the page shows, read in
+the browser.
+
+The browser runs a watcher on every animation frame (:data:`WATCHER_JS`): it walks the page's
+DOM, shadow roots included (Bokeh renders each panel in one), and notes the wall-clock time
+(``Date.now()``, ms) at which each OOS alert row (``data-alert-id``) and each newest-NIR-sample
+time (``data-nir-t``) first appeared, and the lengths of the plots' data sources. A test or a
+benchmark compares those times with the times the messages were published on the same machine.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+#: the flags without which headless Chromium tries to reach the internet on start
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-dev-shm-usage",
+    "--window-size=1500,1150",
+)
+
+WATCHER_JS = """
+window.__twin = {alerts: {}, nir: {}, frames: 0};
+function twinWalk(root, found) {
+  for (const e of root.querySelectorAll('[data-alert-id]')) found.alerts.push(e.getAttribute('data-alert-id'));
+  for (const e of root.querySelectorAll('[data-nir-t]')) found.nir.push(e.getAttribute('data-nir-t'));
+  for (const e of root.querySelectorAll('*')) if (e.shadowRoot) twinWalk(e.shadowRoot, found);
+}
+function twinFrame() {
+  const now = Date.now();
+  const found = {alerts: [], nir: []};
+  twinWalk(document, found);
+  for (const a of found.alerts) if (!(a in window.__twin.alerts)) window.__twin.alerts[a] = now;
+  for (const t of found.nir) if (t !== '' && !(t in window.__twin.nir)) window.__twin.nir[t] = now;
+  window.__twin.frames += 1;
+  requestAnimationFrame(twinFrame);
+}
+requestAnimationFrame(twinFrame);
+"""
+
+SOURCE_LENGTHS_JS = """
+const doc = window.Bokeh && Bokeh.documents && Bokeh.documents[0];
+if (!doc) return null;
+const out = {};
+for (const m of doc.all_models) {
+  if (m.type === 'ColumnDataSource' || (m.constructor && m.constructor.name === 'ColumnDataSource')) {
+    if (m.name) out[m.name] = m.get_length() || 0;
+  }
+}
+return out;
+"""
+
+
+def browser_missing() -> str | None:
+    """Why no headless browser can run here (None: it can)."""
+    missing = [str(p) for p in (CHROMIUM, CHROMEDRIVER) if not p.exists()]
+    if missing:
+        return (
+            f"{', '.join(missing)} not installed (make test installs Debian's chromium and "
+            f"chromium-driver with apt-get when run as root)"
+        )
+    return None
+
+
+def open_browser(profile_dir: Path) -> Any:
+    """A headless Chromium driven by the system's chromedriver (never a downloaded one)."""
+    os.environ["SE_OFFLINE"] = "1"
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = str(CHROMIUM)
+    for flag in CHROMIUM_FLAGS:
+        opts.add_argument(flag)
+    opts.add_argument(f"--user-data-dir={profile_dir}")
+    return webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
+
+
+def load_dashboard(driver: Any, url: str, timeout_s: float = 30.0) -> float:
+    """Open the page, wait until BokehJS has built the document and the panels are drawn, start
+    the watcher; the load time, s (navigation start to the first drawn status panel)."""
+    t0 = time.time()
+    driver.get(url)
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        lengths = driver.execute_script(SOURCE_LENGTHS_JS)
+        if lengths and driver.execute_script(_HAS_STATUS_JS):
+            break
+        time.sleep(0.05)
+    else:
+        raise TimeoutError(f"the dashboard at {url} did not render in {timeout_s} s")
+    loaded = time.time() - t0
+    driver.execute_script(WATCHER_JS)
+    return loaded
+
+
+_HAS_STATUS_JS = """
+function has(root) {
+  if (root.querySelector('.nir-t')) return true;
+  for (const e of root.querySelectorAll('*')) if (e.shadowRoot && has(e.shadowRoot)) return true;
+  return false;
+}
+return has(document);
+"""
+
+
+def seen(driver: Any) -> dict[str, dict[str, float]]:
+    """When (unix s) each alert id and each newest-NIR time first showed in the page."""
+    raw = driver.execute_script("return window.__twin;")
+    return {
+        "alerts": {k: v / 1000.0 for k, v in raw["alerts"].items()},
+        "nir": {k: v / 1000.0 for k, v in raw["nir"].items()},
+    }
+
+
+def source_lengths(driver: Any) -> dict[str, int]:
+    """Rows of each named data source of the page, as BokehJS holds them."""
+    return driver.execute_script(SOURCE_LENGTHS_JS) or {}
+
+
+def external_urls(html: str, resource_urls: list[str], origin: str) -> list[str]:
+    """Every URL the page references (``src``/``href`` attributes, absolute URLs in the text,
+    resources the browser fetched) that is not on ``origin`` or relative."""
+    found = re.findall(r"""(?:src|href)\s*=\s*["']([^"']+)["']""", html)
+    found += re.findall(r"https?://[^\s\"'<>)]+", html)
+    found += resource_urls
+    return sorted({u for u in found if re.match(r"^[a-z]+://", u) and not u.startswith(origin)})
+
+
+def start_dashboard(args: list[str], env: dict | None = None) -> tuple[subprocess.Popen, str]:
+    """``twin dashboard ARGS`` as a child process; returns it and its URL once it serves."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli.main", "dashboard", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        m = re.search(r"(http://\S+/)$", line.strip())
+        if line.startswith("twin dashboard:") and m:
+            # keep reading its output, or a full pipe would stall the server
+            threading.Thread(target=proc.stdout.read, daemon=True).start()
+            return proc, m.group(1)
+    raise RuntimeError(f"twin dashboard exited {proc.wait()}: {''.join(lines)[-2000:]}")
