@@ -41,6 +41,7 @@ CASES: dict[str, tuple[str, str]] = {
     "up": ("--config {missing}", "--config {bad}"),
     "status": ("--config {missing}", "--config {bad}"),
     "alerts": ("--config {missing}", "--config {bad}"),
+    "dashboard": ("--recording {missing}", "--config {bad}"),
     "plant simulate": ("--config {missing} --out {tmp}/o.mcap", "--config {bad} --out {tmp}/o"),
     "rtd analyze": ("{missing} --out {tmp}/o", "{bad} --out {tmp}/o"),
     "rtd funnel": ("{missing} --out {tmp}/o", "{bad} --out {tmp}/o"),
@@ -138,3 +139,18 @@ def test_an_output_in_a_missing_folder_is_refused_before_any_work(tmp_path, caps
     out = tmp_path / "no" / "model.json"
     line = check_one_line(*run(["compartment", "build", str(fields), "--out", str(out)], capsys))
     assert "the output's folder does not exist" in line and not out.parent.exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "named"),
+    [
+        (["--address", "0.0.0.0"], "--address is not a loopback address"),
+        (["--port", "0"], "--port must be in 1..65535, got 0"),
+        (["--speed", "nan"], "--speed must be a finite number > 0, got nan"),
+        (["--max-points", "3"], "--max-points must be >= 10, got 3"),
+    ],
+)
+def test_dashboard_refuses_a_public_address_and_bad_numbers(argv, named, capsys):
+    """The page has no login: a non-loopback address needs --allow-remote."""
+    line = check_one_line(*run(["dashboard", *argv], capsys))
+    assert named in line
