@@ -12,10 +12,11 @@ Data path (the page never waits on the bus):
 
 The feed's thread only puts ``(key, message)`` on a queue. A periodic callback of each
 document (``period_ms``, 200 ms by default) drains the queue into the one
-:class:`~twin_core.online.dashboard_state.DashboardState`, and, when it changed, replaces the
-sources' data with the state's decimated view (at most ``max_points`` per series), so a 200x
-replay costs the browser a bounded amount of work per period and never lags more than a period
-plus the drawing.
+:class:`~twin_core.online.dashboard_state.DashboardState` and, when it changed, streams the new
+samples to each plot, replacing a plot's data by its decimated window only once it holds
+``max_points`` (:class:`~twin_core.online.dashboard_state.PlotFeed`), so a 200x replay costs
+the browser a bounded amount of work per period and never lags more than a period plus the
+drawing.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from schemas.line import LineSpec
 from schemas.messages import DivertCommand, OosAlert
 from services.bus import AlertFeed, TypedSubscriber
 from services.recording import Recording, replay
-from twin_core.online.dashboard_state import DashboardState, DashboardView, Window
+from twin_core.online.dashboard_state import DashboardState, DashboardView, PlotFeed, Window
 
 log = logging.getLogger(__name__)
 
@@ -87,9 +88,10 @@ class DashboardHub:
             n += 1
 
     def view(self) -> DashboardView:
-        """The decimated view of the current state (computed once per state version)."""
+        """The view of the current state but its series (computed once per state version; each
+        page follows the series itself, :class:`PlotFeed`)."""
         if self._view is None or self._view[0] != self.state.version:
-            self._view = (self.state.version, self.state.view(self.max_points))
+            self._view = (self.state.version, self.state.view(None))
         return self._view[1]
 
 
@@ -252,7 +254,7 @@ def health_html(view: DashboardView, now_unix: float) -> str:
             _esc(name),
             _esc(h["state"]),
             f"{h['t']:.0f}",
-            f"{max(0.0, now_unix - h['wall_time_unix_s']):.1f}",
+            f"{max(0.0, now_unix - h['wall_time_unix_s']):.0f}",
             _esc(", ".join(f"{k}={v}" for k, v in sorted(h["counters"].items()))),
         ]
         for name, h in view.health.items()
@@ -268,8 +270,8 @@ def health_html(view: DashboardView, now_unix: float) -> str:
 
 def status_html(hub: DashboardHub, view: DashboardView) -> str:
     """The header: line, source, plant time, newest NIR sample time (``data-nir-t``)."""
-    nir = [s for name, s in view.series.items() if name.startswith("measured:")]
-    nir_t = max((s["t"][-1] for s in nir if s["t"]), default=None)
+    nir = hub.state.series(f"measured:{hub.spec.sensor.id}")[0]
+    nir_t = float(nir[-1]) if nir.size else None
     nir_text = "-" if nir_t is None else f"{nir_t:.0f} s"
     return (
         f"<span class='title'>powder-twin {_esc(hub.spec.name)}</span> &middot; "
@@ -308,6 +310,13 @@ class Page:
         self.sources: dict[str, ColumnDataSource] = {}
         self.conc = self._concentration_figure(spec, limits)
         self.flows = self._flow_figure(spec)
+        self.rtd = self._rtd_figure(spec)
+        self.drawn_estimate: tuple[float, str] | None = None
+        self.feeds = {
+            name: PlotFeed(hub.max_points, window_s)
+            for name in self.sources
+            if name.split(":")[0] in ("measured", "predicted", "flow")
+        }
         self.divs = {
             name: Div(name=name, text="", sizing_mode="stretch_width")
             for name in ("status", "diverter", "alerts", "blender", "findings", "health")
@@ -319,7 +328,8 @@ class Page:
                 style,
                 self.divs["status"],
                 row(self.conc, column(self.divs["diverter"], self.divs["alerts"], width=520)),
-                row(self.flows, column(self.divs["blender"], self.divs["findings"], width=520)),
+                row(self.flows, column(self.divs["blender"], self.rtd, width=520)),
+                self.divs["findings"],
                 self.divs["health"],
                 sizing_mode="stretch_width",
             )
@@ -336,17 +346,9 @@ class Page:
 
     def _concentration_figure(self, spec: LineSpec, limits: Any) -> Any:
         from bokeh.models import Span
-        from bokeh.plotting import figure
 
         comp = spec.sensor.component
-        fig = figure(
-            name="concentration",
-            title=f"outlet {comp}: measured vs predicted, % w/w",
-            height=340,
-            width=900,
-            x_axis_label="plant time, s",
-            tools="xpan,xwheel_zoom,reset,save",
-        )
+        fig = _time_figure("concentration", f"outlet {comp}: measured vs predicted, % w/w", 340)
         alerts = self._source("alert_windows", ("x0", "x1"))
         fig.vstrip(x0="x0", x1="x1", source=alerts, color=ALERT_COLOR, alpha=0.15)
         diverts = self._source("divert_windows", ("x0", "x1"))
@@ -367,16 +369,8 @@ class Page:
 
     def _flow_figure(self, spec: LineSpec) -> Any:
         from bokeh.palettes import Category10_10
-        from bokeh.plotting import figure
 
-        fig = figure(
-            name="flows",
-            title="feeder mass flows, kg/h (refills shaded)",
-            height=300,
-            width=900,
-            x_axis_label="plant time, s",
-            tools="xpan,xwheel_zoom,reset,save",
-        )
+        fig = _time_figure("flows", "feeder mass flows, kg/h (refills shaded)", 300)
         fig.x_range = self.conc.x_range
         refills = self._source("refill_windows", ("x0", "x1"))
         fig.vstrip(x0="x0", x1="x1", source=refills, color=REFILL_COLOR, alpha=0.2)
@@ -386,6 +380,50 @@ class Page:
         fig.legend.location = "top_left"
         return fig
 
+    def _rtd_figure(self, spec: LineSpec) -> Any:
+        """E(t) of the blender: the declared model and the newest RTD estimate."""
+        from bokeh.plotting import figure
+
+        from twin_core.online.blender import declared_kernel, tick_grid
+
+        fig = figure(
+            name="rtd",
+            title="blender E(t), 1/s: declared and newest RTD estimate",
+            height=220,
+            width=500,
+            x_axis_label="time since entry, s",
+            tools="reset,save",
+        )
+        t = tick_grid(spec.dt_s, spec.blender.kernel_s)
+        declared = self._source("rtd_declared", ("t", "e"))
+        declared.data = {"t": t.tolist(), "e": declared_kernel(spec).tolist()}
+        fig.line(
+            "t", "e", source=declared, color="gray", line_dash="dashed", legend_label="declared"
+        )
+        newest = self._source("rtd_estimate", ("t", "e"))
+        fig.line("t", "e", source=newest, color="#1f77b4", line_width=2, legend_label="estimate")
+        fig.legend.location = "top_right"
+        return fig
+
+    def _show_newest_estimate(self, view: DashboardView) -> None:
+        """Draw the E(t) of the newest RTD estimate, once per new estimate."""
+        from twin_core.online.blender import tick_grid
+        from twin_core.rtd.models import model_e
+
+        if not view.rtd_estimates:
+            return
+        e = view.rtd_estimates[-1]
+        if (e["t"], e["model"]) == self.drawn_estimate:
+            return
+        self.drawn_estimate = (e["t"], e["model"])
+        t = tick_grid(self.hub.spec.dt_s, self.hub.spec.blender.kernel_s)
+        try:
+            curve = model_e(e["model"], e["params"], t)
+        except (TypeError, ValueError) as exc:  # a model or parameters this twin does not know
+            log.warning("cannot draw the RTD estimate %s: %s", e["model"], exc)
+            return
+        self.sources["rtd_estimate"].data = {"t": t.tolist(), "e": curve.tolist()}
+
     def refresh(self) -> None:
         """Take the queued messages in; redraw what changed (the server's thread)."""
         self.hub.drain()
@@ -393,11 +431,12 @@ class Page:
             return
         self.version = self.hub.state.version
         view = self.hub.view()
-        t_min = view.now_s - self.window_s
-        for name, series in view.series.items():
-            src = self.sources.get(name)
-            if src is not None:
-                src.data = _in_window(series, t_min)
+        for name, feed in self.feeds.items():
+            change = feed.update(self.hub.state.series(name))
+            if change is not None and change[0] == "stream":
+                self.sources[name].stream(change[1])
+            elif change is not None:
+                self.sources[name].data = change[1]
         self.sources["alert_windows"].data = _strips(
             [(a["t_start_s"], a["t_end_s"]) for a in view.alerts]
         )
@@ -407,6 +446,7 @@ class Page:
         self.sources["refill_windows"].data = _strips(
             [(w.t_start_s, w.t_end_s) for ws in view.refill_windows.values() for w in ws]
         )
+        self._show_newest_estimate(view)
         self.divs["status"].text = status_html(self.hub, view)
         self.divs["diverter"].text = diverter_html(view)
         self.divs["alerts"].text = alerts_html(view)
@@ -415,10 +455,18 @@ class Page:
         self.divs["health"].text = health_html(view, time.time())
 
 
-def _in_window(series: dict[str, list[float]], t_min: float) -> dict[str, list[float]]:
-    """The part of a decimated series at plant time >= ``t_min``."""
-    first = next((i for i, t in enumerate(series["t"]) if t >= t_min), len(series["t"]))
-    return {k: v[first:] for k, v in series.items()}
+def _time_figure(name: str, title: str, height: int) -> Any:
+    """A plot over plant time (pan and wheel-zoom along time only)."""
+    from bokeh.plotting import figure
+
+    return figure(
+        name=name,
+        title=title,
+        height=height,
+        width=900,
+        x_axis_label="plant time, s",
+        tools="xpan,xwheel_zoom,reset,save",
+    )
 
 
 def _strips(windows: list[tuple[float, float]]) -> dict[str, list[float]]:

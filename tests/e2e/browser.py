@@ -5,7 +5,7 @@ the browser.
 The browser runs a watcher on every animation frame (:data:`WATCHER_JS`): it walks the page's
 DOM, shadow roots included (Bokeh renders each panel in one), and notes the wall-clock time
 (``Date.now()``, ms) at which each OOS alert row (``data-alert-id``) and each newest-NIR-sample
-time (``data-nir-t``) first appeared, and the lengths of the plots' data sources. A test or a
+time (``data-nir-t``) first appeared; :func:`sources` reads the plots' data sources. A test or a
 benchmark compares those times with the times the messages were published on the same machine.
 """
 
@@ -55,13 +55,15 @@ function twinFrame() {
 requestAnimationFrame(twinFrame);
 """
 
-SOURCE_LENGTHS_JS = """
+SOURCES_JS = """
 const doc = window.Bokeh && Bokeh.documents && Bokeh.documents[0];
 if (!doc) return null;
 const out = {};
 for (const m of doc.all_models) {
-  if (m.type === 'ColumnDataSource' || (m.constructor && m.constructor.name === 'ColumnDataSource')) {
-    if (m.name) out[m.name] = m.get_length() || 0;
+  if (m.name && typeof m.get_length === 'function') {
+    const t = (m.data instanceof Map) ? m.data.get('t') : m.data.t;
+    const n = m.get_length() || 0;
+    out[m.name] = [n, (t && n) ? t[n - 1] : null];
   }
 }
 return out;
@@ -100,8 +102,7 @@ def load_dashboard(driver: Any, url: str, timeout_s: float = 30.0) -> float:
     driver.get(url)
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
-        lengths = driver.execute_script(SOURCE_LENGTHS_JS)
-        if lengths and driver.execute_script(_HAS_STATUS_JS):
+        if driver.execute_script(SOURCES_JS) and driver.execute_script(_HAS_STATUS_JS):
             break
         time.sleep(0.05)
     else:
@@ -130,9 +131,9 @@ def seen(driver: Any) -> dict[str, dict[str, float]]:
     }
 
 
-def source_lengths(driver: Any) -> dict[str, int]:
-    """Rows of each named data source of the page, as BokehJS holds them."""
-    return driver.execute_script(SOURCE_LENGTHS_JS) or {}
+def sources(driver: Any) -> dict[str, tuple[int, float | None]]:
+    """Rows and newest ``t`` of each named data source of the page, as BokehJS holds them."""
+    return {k: tuple(v) for k, v in (driver.execute_script(SOURCES_JS) or {}).items()}
 
 
 def external_urls(html: str, resource_urls: list[str], origin: str) -> list[str]:

@@ -10,10 +10,13 @@ from pathlib import Path
 
 from bokeh.document import Document
 
+from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
+from schemas.messages import RtdEstimate
 from services.bus import free_port
 from services.dashboard import DashboardHub, Page, make_server, start_recording_feed
 from services.recording import read_recording
+from twin_core.online.blender import declared_kernel
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "services" / "configs" / "line1_5pct.yaml"
@@ -55,3 +58,34 @@ def test_page_is_served_from_its_own_origin_only():
         server.stop()
     assert "/static/js/bokeh.min.js" in html
     assert "http://" not in html and "https://" not in html and "//cdn" not in html
+
+
+def finding(status: str, t_end: float) -> ModelFinding:
+    err = {"rmse": 0.2, "mae": 0.1, "n": 100}
+    pair = {"train": err, "heldout": err}
+    return ModelFinding(
+        t=t_end, seq=0, finding_id=f"line1.closeloop-{int(t_end * 1000)}", status=status,
+        t_start_s=t_end - 600.0, t_end_s=t_end, errors={"before": pair, "after": pair},
+    )  # fmt: skip
+
+
+def test_estimate_curve_and_findings_panel():
+    """An RTD estimate with the declared model's own parameters draws the declared E(t) (seed
+    Table 6.2's axial dispersion model, evaluated by twin_core.rtd.models); findings show with
+    their status, newest first."""
+    spec = LineSpec.from_file(CONFIG)
+    hub = DashboardHub(spec)
+    page = Page(Document(), hub, period_ms=200, window_s=3600.0)
+    b = spec.blender
+    hub.put(
+        "twin/line1/rtd/estimate",
+        RtdEstimate(t=400.0, seq=0, model=b.model, params=b.params, mean_residence_time_s=28.3),
+    )
+    hub.put("twin/line1/closeloop/finding", finding("consistent", 900.0))
+    hub.put("twin/line1/closeloop/finding", finding("unexplained", 1200.0))
+    page.refresh()
+    assert page.sources["rtd_estimate"].data["e"] == declared_kernel(spec).tolist()
+    text = page.divs["findings"].text
+    assert text.index("line1.closeloop-1200000") < text.index("line1.closeloop-900000")
+    assert "status-unexplained" in text and "status-consistent" in text
+    assert "axial_dispersion_open" in page.divs["blender"].text

@@ -4,7 +4,8 @@
 measurements, predictions, events, OOS alerts, divert commands, RTD estimates, close-loop
 findings, service health) and keeps them in bounded ring buffers, so a twin that runs for days
 holds a fixed amount of memory. :func:`decimate_min_max` thins a series to a maximum number of
-points for a plot while keeping every excursion visible (the extremes of each bucket), and
+points for a plot while keeping every excursion visible (the extremes of each bucket),
+:class:`PlotFeed` tells a plot what to append or replace at each refresh, and
 :meth:`DashboardState.diverter` tells whether the gate diverts now and which divert windows are
 still to come. Nothing here draws or talks to a bus: the dashboard service turns a
 :class:`DashboardView` into pixels.
@@ -265,12 +266,14 @@ class DashboardState:
             )
         return out
 
-    def view(self, max_points: int) -> DashboardView:
-        """The state decimated to at most ``max_points`` points per series
-        (:func:`decimate_min_max`), everything else as plain data."""
+    def view(self, max_points: int | None) -> DashboardView:
+        """The state as plain data, each series decimated to at most ``max_points`` points
+        (:func:`decimate_columns`; ``None``: no series, for a drawer that follows them with
+        :class:`PlotFeed`)."""
+        names = self.series_names() if max_points is not None else []
         return DashboardView(
             now_s=self.now_s,
-            series={name: self._decimated(name, max_points) for name in self.series_names()},
+            series={name: decimate_columns(self.series(name), max_points) for name in names},
             alerts=[_alert_row(a) for a in self._alerts.values()],
             divert_windows=self.divert_windows(),
             refill_windows=self.refill_windows(),
@@ -282,15 +285,56 @@ class DashboardState:
             counters=dict(self.counters),
         )
 
-    def _decimated(self, name: str, max_points: int) -> dict[str, list[float]]:
-        cols = self.series(name)
-        t, y = decimate_min_max(cols[0], cols[1], max_points)
-        out = {"t": t.tolist(), "y": y.tolist()}
-        if cols.shape[0] == 4:  # a prediction with its bounds: the band at the kept times
-            kept = np.isin(cols[0], t)
-            out["lower"] = np.where(np.isnan(cols[2][kept]), y, cols[2][kept]).tolist()
-            out["upper"] = np.where(np.isnan(cols[3][kept]), y, cols[3][kept]).tolist()
-        return out
+
+def columns_dict(cols: np.ndarray) -> dict[str, list[float]]:
+    """Series columns (rows t, y[, lower, upper]) as a plot's data: samples with a NaN value
+    left out; a missing bound is the value itself (no band there)."""
+    cols = cols[:, ~np.isnan(cols[1])]
+    out = {"t": cols[0].tolist(), "y": cols[1].tolist()}
+    if cols.shape[0] == 4:
+        out["lower"] = np.where(np.isnan(cols[2]), cols[1], cols[2]).tolist()
+        out["upper"] = np.where(np.isnan(cols[3]), cols[1], cols[3]).tolist()
+    return out
+
+
+def decimate_columns(cols: np.ndarray, max_points: int) -> dict[str, list[float]]:
+    """:func:`decimate_min_max` of series columns, the bounds (if any) at the kept times."""
+    cols = cols[:, ~np.isnan(cols[1])]
+    t, _ = decimate_min_max(cols[0], cols[1], max_points)
+    return columns_dict(cols[:, np.isin(cols[0], t)])
+
+
+class PlotFeed:
+    """What one plot of one series needs at each refresh to show the series' newest
+    ``window_s`` of plant time with at most ``max_points`` points, sending little.
+
+    New samples are streamed (appended) while the plot holds fewer than ``max_points``; then it
+    is replaced by the window decimated to ``max_points // 2`` (:func:`decimate_columns`), so a
+    replacement comes once per ``max_points // 2`` new samples and a refresh otherwise carries
+    only what is new.
+    """
+
+    def __init__(self, max_points: int, window_s: float) -> None:
+        self.max_points = max_points
+        self.window_s = window_s
+        self.n_shown = 0
+        self.last_t = -np.inf
+
+    def update(self, cols: np.ndarray) -> tuple[str, dict[str, list[float]]] | None:
+        """``("stream", new samples)``, ``("replace", all to show)`` or None (nothing new) for
+        the series' columns ``cols`` (rows t, value(s); :meth:`DashboardState.series`)."""
+        new = cols[:, cols[0] > self.last_t]
+        if new.shape[1] == 0:
+            return None
+        self.last_t = float(new[0, -1])
+        if self.n_shown + new.shape[1] <= self.max_points:
+            data = columns_dict(new)
+            self.n_shown += len(data["t"])
+            return "stream", data
+        shown = cols[:, cols[0] >= self.last_t - self.window_s]
+        data = decimate_columns(shown, self.max_points // 2)
+        self.n_shown = len(data["t"])
+        return "replace", data
 
 
 def _trim(items: dict[str, Any], kept: int) -> None:
@@ -304,42 +348,33 @@ def _bounded_append(items: deque, item: Any, kept: int) -> None:
         items.popleft()
 
 
+#: the fields of each kind of event the view carries
+ALERT_FIELDS = (
+    "alert_id", "t", "component", "t_start_s", "t_end_s", "peak_deviation_pct_w_w",
+    "limit_pct_w_w", "cause",
+)  # fmt: skip
+RTD_FIELDS = (
+    "t", "model", "mean_residence_time_s", "params", "pulse_t_s", "rmse", "applies_from_s",
+)  # fmt: skip
+FINDING_FIELDS = (
+    "finding_id", "t", "status", "t_start_s", "t_end_s", "product_at_risk", "remaining",
+)  # fmt: skip
+
+
+def _fields(msg: Any, names: tuple[str, ...]) -> dict[str, Any]:
+    return {name: getattr(msg, name) for name in names}
+
+
 def _alert_row(a: Any) -> dict[str, Any]:
-    return {
-        "alert_id": a.alert_id,
-        "t": a.t,
-        "component": a.component,
-        "t_start_s": a.t_start_s,
-        "t_end_s": a.t_end_s,
-        "peak_deviation_pct_w_w": a.peak_deviation_pct_w_w,
-        "limit_pct_w_w": a.limit_pct_w_w,
-        "cause": a.cause,
-    }
+    return _fields(a, ALERT_FIELDS)
 
 
 def _rtd_row(e: Any) -> dict[str, Any]:
-    return {
-        "t": e.t,
-        "model": e.model,
-        "mean_residence_time_s": e.mean_residence_time_s,
-        "params": dict(e.params),
-        "pulse_t_s": e.pulse_t_s,
-        "rmse": e.rmse,
-        "applies_from_s": e.applies_from_s,
-    }
+    return {**_fields(e, RTD_FIELDS), "params": dict(e.params)}
 
 
 def _finding_row(f: Any) -> dict[str, Any]:
-    return {
-        "finding_id": f.finding_id,
-        "t": f.t,
-        "status": f.status,
-        "t_start_s": f.t_start_s,
-        "t_end_s": f.t_end_s,
-        "effects": [e.label for e in f.effects],
-        "product_at_risk": f.product_at_risk,
-        "remaining": f.remaining,
-    }
+    return {**_fields(f, FINDING_FIELDS), "effects": [e.label for e in f.effects]}
 
 
 def _health_row(h: Any) -> dict[str, Any]:

@@ -20,7 +20,7 @@ from schemas.messages import (
     PredictedConcentration,
     ServiceHealth,
 )
-from twin_core.online.dashboard_state import DashboardState, Ring, decimate_min_max
+from twin_core.online.dashboard_state import DashboardState, PlotFeed, Ring, decimate_min_max
 
 KEY_API = "twin/line1/feeder/api/flow"
 KEY_NIR = "twin/line1/pat/nir1/concentration"
@@ -176,3 +176,25 @@ def test_health_is_latest_per_service_and_does_not_move_plant_time():
     s.add("twin/line1/service/oos/health", h)
     assert s.now_s == 0.0
     assert s.view(10).health["oos"]["counters"] == {"published": 2}
+
+
+def test_plot_feed_streams_then_replaces_with_the_decimated_window():
+    """A plot of max 100 points: new samples are appended until it would hold more, then it is
+    replaced by the last window_s of the series decimated to 50; what it shows always ends at
+    the newest sample and never holds more than 100."""
+    s = DashboardState()
+    feed = PlotFeed(max_points=100, window_s=500.0)
+    shown: list[float] = []
+    kinds = []
+    for i in range(1000):
+        s.add(KEY_NIR, nir(float(i), i, 5.0 + np.sin(i / 7.0)))
+        if i % 40 == 39:  # a refresh every 40 samples (200 ms at 200x)
+            kind, data = feed.update(s.series("measured:nir1"))
+            shown = shown + data["t"] if kind == "stream" else data["t"]
+            kinds.append(kind)
+            assert len(shown) <= 100 and shown[-1] == float(i)
+            assert feed.n_shown == len(shown)
+    assert feed.update(s.series("measured:nir1")) is None  # nothing new
+    assert kinds[:2] == ["stream", "stream"] and "replace" in kinds
+    assert kinds.count("replace") <= len(kinds) // 2
+    assert shown[0] >= 999.0 - 500.0 - 40.0  # the window, plus what streamed since
