@@ -72,12 +72,14 @@ def run_speed(session, rec: Recording, speed: float, driver, pid: int) -> dict[s
         if key == NIR_KEY:
             published.setdefault(f"{_plant_t(payload):g}", time.time())
 
+    frames0 = seen(driver)["frames"]
     cpu0, wall0 = cpu_seconds(pid), time.time()
     replay(rec, publish, speed=speed)
     time.sleep(1.5)  # the last refreshes reach the page
     cpu = cpu_seconds(pid) - cpu0
     wall = time.time() - wall0
-    shown = seen(driver)["nir"]
+    page = seen(driver)
+    shown = page["nir"]
     lat = np.array([shown[t] - published[t] for t in shown if t in published])
     return {
         "speed": speed,
@@ -87,6 +89,7 @@ def run_speed(session, rec: Recording, speed: float, driver, pid: int) -> dict[s
         "p90_ms": float(np.percentile(lat, 90) * 1e3),
         "max_ms": float(lat.max() * 1e3),
         "cpu_fraction": cpu / wall,
+        "frames_per_s": (page["frames"] - frames0) / wall,
         "wall_s": wall,
     }
 
@@ -134,7 +137,8 @@ def main(speeds: list[float]) -> None:
                 f"{speed:g}x: NIR message -> pixels p50 {r['p50_ms']:.0f} ms, "
                 f"p90 {r['p90_ms']:.0f} ms, max {r['max_ms']:.0f} ms "
                 f"({r['nir_drawn']} of {r['nir_published']} samples drawn); dashboard CPU "
-                f"{100 * r['cpu_fraction']:.0f} % of one core over {r['wall_s']:.1f} s"
+                f"{100 * r['cpu_fraction']:.0f} % of one core over {r['wall_s']:.1f} s; page "
+                f"drew {r['frames_per_s']:.0f} frames/s"
             )
             OUT.mkdir(parents=True, exist_ok=True)
             driver.save_screenshot(str(OUT / f"dashboard_{speed:g}x.png"))

@@ -8,15 +8,16 @@ sources; the plots are Bokeh models built in Python, no hand-written plotting Ja
 Data path (the page never waits on the bus):
 
     zenoh callback / recording thread --put--> queue --every period_ms--> DashboardState
-        --view (decimated, twin_core.online.dashboard_state)--> ColumnDataSources --> browser
+        --view, PlotFeed (twin_core.online.dashboard_state)--> ColumnDataSources --> browser
 
-The feed's thread only puts ``(key, message)`` on a queue. A periodic callback of each
-document (``period_ms``, 200 ms by default) drains the queue into the one
-:class:`~twin_core.online.dashboard_state.DashboardState` and, when it changed, streams the new
-samples to each plot, replacing a plot's data by its decimated window only once it holds
-``max_points`` (:class:`~twin_core.online.dashboard_state.PlotFeed`), so a 200x replay costs
-the browser a bounded amount of work per period and never lags more than a period plus the
-drawing.
+The feed's thread only puts ``(key, message)`` on a queue (an OOS alert or divert command also
+asks each page for a refresh at once, through Bokeh's thread-safe ``add_next_tick_callback``).
+A periodic callback of each document (``period_ms``, 200 ms by default) drains the queue into
+the one :class:`~twin_core.online.dashboard_state.DashboardState` and, when it changed, updates
+the panels (the alerts first) and streams the new samples to each plot, replacing a plot's data
+by its decimated window only once it holds ``max_points``
+(:class:`~twin_core.online.dashboard_state.PlotFeed`), so a 200x replay costs the browser a
+bounded amount of work per period and never lags more than a period plus the drawing.
 """
 
 from __future__ import annotations
@@ -70,11 +71,27 @@ class DashboardHub:
         self._queue: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._view: tuple[int, DashboardView] | None = None
         self.source = "bus"
+        self._wake: dict[str, Callable[[], None]] = {}
+        self._wake_lock = threading.Lock()
         self.finished = threading.Event()
 
     def put(self, key: str, msg: Any) -> None:
-        """Hand one validated message over (any thread; never blocks)."""
+        """Hand one validated message over (any thread; never blocks). An alert or divert
+        command asks every page for a refresh at once instead of at its next period."""
         self._queue.put((key, msg))
+        if isinstance(msg, OosAlert | DivertCommand):
+            with self._wake_lock:
+                wakes = list(self._wake.values())
+            for wake in wakes:
+                wake()
+
+    def on_urgent(self, page_id: str, wake: Callable[[], None] | None) -> None:
+        """Register (or with None remove) a page's thread-safe request for a refresh."""
+        with self._wake_lock:
+            if wake is None:
+                self._wake.pop(page_id, None)
+            else:
+                self._wake[page_id] = wake
 
     def drain(self) -> int:
         """Move every queued message into the state (the server's thread); how many."""
@@ -336,6 +353,9 @@ class Page:
         )
         self.refresh()
         doc.add_periodic_callback(self.refresh, period_ms)
+        # add_next_tick_callback is the one thread-safe way into a Bokeh document
+        hub.on_urgent(id_of(doc), lambda: doc.add_next_tick_callback(self.refresh))
+        doc.on_session_destroyed(lambda ctx: hub.on_urgent(id_of(doc), None))
 
     def _source(self, name: str, columns: tuple[str, ...]) -> Any:
         from bokeh.models import ColumnDataSource
@@ -431,12 +451,10 @@ class Page:
             return
         self.version = self.hub.state.version
         view = self.hub.view()
-        for name, feed in self.feeds.items():
-            change = feed.update(self.hub.state.series(name))
-            if change is not None and change[0] == "stream":
-                self.sources[name].stream(change[1])
-            elif change is not None:
-                self.sources[name].data = change[1]
+        # the alert first: each change goes to the browser as it is made, the plots' data last
+        self.divs["alerts"].text = alerts_html(view)
+        self.divs["diverter"].text = diverter_html(view)
+        self.divs["status"].text = status_html(self.hub, view)
         self.sources["alert_windows"].data = _strips(
             [(a["t_start_s"], a["t_end_s"]) for a in view.alerts]
         )
@@ -446,13 +464,21 @@ class Page:
         self.sources["refill_windows"].data = _strips(
             [(w.t_start_s, w.t_end_s) for ws in view.refill_windows.values() for w in ws]
         )
+        for name, feed in self.feeds.items():
+            change = feed.update(self.hub.state.series(name))
+            if change is not None and change[0] == "stream":
+                self.sources[name].stream(change[1])
+            elif change is not None:
+                self.sources[name].data = change[1]
         self._show_newest_estimate(view)
-        self.divs["status"].text = status_html(self.hub, view)
-        self.divs["diverter"].text = diverter_html(view)
-        self.divs["alerts"].text = alerts_html(view)
         self.divs["blender"].text = blender_html(view)
         self.divs["findings"].text = findings_html(view)
         self.divs["health"].text = health_html(view, time.time())
+
+
+def id_of(doc: Any) -> str:
+    """A key for one page's document."""
+    return str(id(doc))
 
 
 def _time_figure(name: str, title: str, height: int) -> Any:

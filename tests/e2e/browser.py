@@ -2,8 +2,9 @@
 ``chromium-driver``; ``make test`` installs them when it can), and what the page shows, read in
 the browser.
 
-The browser runs a watcher on every animation frame (:data:`WATCHER_JS`): it walks the page's
-DOM, shadow roots included (Bokeh renders each panel in one), and notes the wall-clock time
+The browser runs a watcher on every animation frame (:data:`WATCHER_JS`): it looks through the
+page's DOM, shadow roots included (Bokeh renders each panel in one; the roots are collected
+again every second), and notes the wall-clock time
 (``Date.now()``, ms) at which each OOS alert row (``data-alert-id``) and each newest-NIR-sample
 time (``data-nir-t``) first appeared; :func:`sources` reads the plots' data sources. A test or a
 benchmark compares those times with the times the messages were published on the same machine.
@@ -37,19 +38,27 @@ CHROMIUM_FLAGS = (
 )
 
 WATCHER_JS = """
-window.__twin = {alerts: {}, nir: {}, frames: 0};
-function twinWalk(root, found) {
-  for (const e of root.querySelectorAll('[data-alert-id]')) found.alerts.push(e.getAttribute('data-alert-id'));
-  for (const e of root.querySelectorAll('[data-nir-t]')) found.nir.push(e.getAttribute('data-nir-t'));
-  for (const e of root.querySelectorAll('*')) if (e.shadowRoot) twinWalk(e.shadowRoot, found);
+window.__twin = {alerts: {}, nir: {}, frames: 0, roots: [], walked: 0};
+function twinRoots(root, out) {
+  out.push(root);
+  for (const e of root.querySelectorAll('*')) if (e.shadowRoot) twinRoots(e.shadowRoot, out);
+  return out;
 }
 function twinFrame() {
   const now = Date.now();
-  const found = {alerts: [], nir: []};
-  twinWalk(document, found);
-  for (const a of found.alerts) if (!(a in window.__twin.alerts)) window.__twin.alerts[a] = now;
-  for (const t of found.nir) if (t !== '' && !(t in window.__twin.nir)) window.__twin.nir[t] = now;
-  window.__twin.frames += 1;
+  const w = window.__twin;
+  if (now - w.walked > 1000) { w.roots = twinRoots(document, []); w.walked = now; }
+  for (const root of w.roots) {
+    for (const e of root.querySelectorAll('[data-alert-id]')) {
+      const a = e.getAttribute('data-alert-id');
+      if (!(a in w.alerts)) w.alerts[a] = now;
+    }
+    for (const e of root.querySelectorAll('[data-nir-t]')) {
+      const t = e.getAttribute('data-nir-t');
+      if (t !== '' && !(t in w.nir)) w.nir[t] = now;
+    }
+  }
+  w.frames += 1;
   requestAnimationFrame(twinFrame);
 }
 requestAnimationFrame(twinFrame);
@@ -122,12 +131,16 @@ return has(document);
 """
 
 
-def seen(driver: Any) -> dict[str, dict[str, float]]:
-    """When (unix s) each alert id and each newest-NIR time first showed in the page."""
-    raw = driver.execute_script("return window.__twin;")
+def seen(driver: Any) -> dict[str, Any]:
+    """When (unix s) each alert id and each newest-NIR time first showed in the page, and how
+    many frames the page has drawn since the watcher started."""
+    raw = driver.execute_script(
+        "const w = window.__twin; return {alerts: w.alerts, nir: w.nir, frames: w.frames};"
+    )
     return {
         "alerts": {k: v / 1000.0 for k, v in raw["alerts"].items()},
         "nir": {k: v / 1000.0 for k, v in raw["nir"].items()},
+        "frames": raw["frames"],
     }
 
 

@@ -11,13 +11,14 @@ follows its bus as a separate process; Chromium loads the page while the replay 
 - the page and what the browser fetched reference no URL off the dashboard's origin (a plant
   network has no internet).
 
-Screenshots go to ``out/test_artifacts/``. Reference for the alerts: one per tracer pulse of the
+Screenshots and the measured latencies go to ``out/test_artifacts/``. Reference for the alerts: one per tracer pulse of the
 bundled recording (its three API pulses, 300/900/1500 s, leave the 5 % +- 15 % specification,
 as ``tests/e2e/test_demo.py`` finds through ``twin demo``).
 """
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from pathlib import Path
@@ -144,6 +145,9 @@ def test_dashboard_follows_the_twin_in_chromium(tmp_path, browser):
             proc.terminate()
             proc.wait(10)
         sup.stop()
+    (ARTIFACTS / "dashboard_latency.json").write_text(
+        json.dumps({"alert_to_page_s": latency, "page_load_s": load_s}, indent=2)
+    )
     assert second > first, f"the NIR plot did not advance during the replay ({first} -> {second} s)"
     assert len(latency) == 3, latency  # one alert per tracer pulse
     assert max(latency.values()) <= ALERT_LATENCY_S, f"alert -> page latency {latency} s"
