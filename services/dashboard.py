@@ -354,7 +354,7 @@ class Page:
         self.refresh()
         doc.add_periodic_callback(self.refresh, period_ms)
         # add_next_tick_callback is the one thread-safe way into a Bokeh document
-        hub.on_urgent(id_of(doc), lambda: doc.add_next_tick_callback(self.refresh))
+        hub.on_urgent(id_of(doc), lambda: doc.add_next_tick_callback(self.refresh_alerts))
         doc.on_session_destroyed(lambda ctx: hub.on_urgent(id_of(doc), None))
 
     def _source(self, name: str, columns: tuple[str, ...]) -> Any:
@@ -444,6 +444,23 @@ class Page:
             return
         self.sources["rtd_estimate"].data = {"t": t.tolist(), "e": curve.tolist()}
 
+    def refresh_alerts(self) -> None:
+        """Take the queued messages in and show the alerts and the diverter only: a small
+        change that reaches the browser without waiting for the plots (the periodic
+        :meth:`refresh` draws the rest)."""
+        self.hub.drain()
+        self._show_alerts(self.hub.view())
+
+    def _show_alerts(self, view: DashboardView) -> None:
+        self.divs["alerts"].text = alerts_html(view)
+        self.divs["diverter"].text = diverter_html(view)
+        self.sources["alert_windows"].data = _strips(
+            [(a["t_start_s"], a["t_end_s"]) for a in view.alerts]
+        )
+        self.sources["divert_windows"].data = _strips(
+            [(w.t_start_s, w.t_end_s) for w in view.divert_windows]
+        )
+
     def refresh(self) -> None:
         """Take the queued messages in; redraw what changed (the server's thread)."""
         self.hub.drain()
@@ -451,16 +468,8 @@ class Page:
             return
         self.version = self.hub.state.version
         view = self.hub.view()
-        # the alert first: each change goes to the browser as it is made, the plots' data last
-        self.divs["alerts"].text = alerts_html(view)
-        self.divs["diverter"].text = diverter_html(view)
+        self._show_alerts(view)
         self.divs["status"].text = status_html(self.hub, view)
-        self.sources["alert_windows"].data = _strips(
-            [(a["t_start_s"], a["t_end_s"]) for a in view.alerts]
-        )
-        self.sources["divert_windows"].data = _strips(
-            [(w.t_start_s, w.t_end_s) for w in view.divert_windows]
-        )
         self.sources["refill_windows"].data = _strips(
             [(w.t_start_s, w.t_end_s) for ws in view.refill_windows.values() for w in ws]
         )

@@ -6,7 +6,8 @@ The browser runs a watcher on every animation frame (:data:`WATCHER_JS`): it loo
 page's DOM, shadow roots included (Bokeh renders each panel in one; the roots are collected
 again every second), and notes the wall-clock time
 (``Date.now()``, ms) at which each OOS alert row (``data-alert-id``) and each newest-NIR-sample
-time (``data-nir-t``) first appeared; :func:`sources` reads the plots' data sources. A test or a
+time (``data-nir-t``) first appeared, and each new newest ``t`` of one plot's data source;
+:func:`sources` reads the plots' data sources. A test or a
 benchmark compares those times with the times the messages were published on the same machine.
 """
 
@@ -38,7 +39,17 @@ CHROMIUM_FLAGS = (
 )
 
 WATCHER_JS = """
-window.__twin = {alerts: {}, nir: {}, frames: 0, roots: [], walked: 0};
+window.__twin = {alerts: {}, nir: {}, frames: 0, roots: [], walked: 0, plotted: [],
+                 plot: arguments[0]};
+function twinPlotted(w, now) {
+  const doc = window.Bokeh && Bokeh.documents && Bokeh.documents[0];
+  const m = doc && doc.get_model_by_name(w.plot);
+  if (!m) return;
+  const t = (m.data instanceof Map) ? m.data.get('t') : m.data.t;
+  const last = (t && t.length) ? t[t.length - 1] : null;
+  if (last !== null && (w.plotted.length === 0 || w.plotted[w.plotted.length - 1][0] !== last))
+    w.plotted.push([last, now]);
+}
 function twinRoots(root, out) {
   out.push(root);
   for (const e of root.querySelectorAll('*')) if (e.shadowRoot) twinRoots(e.shadowRoot, out);
@@ -58,6 +69,7 @@ function twinFrame() {
       if (t !== '' && !(t in w.nir)) w.nir[t] = now;
     }
   }
+  twinPlotted(w, now);
   w.frames += 1;
   requestAnimationFrame(twinFrame);
 }
@@ -104,9 +116,12 @@ def open_browser(profile_dir: Path) -> Any:
     return webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
 
 
-def load_dashboard(driver: Any, url: str, timeout_s: float = 30.0) -> float:
+def load_dashboard(
+    driver: Any, url: str, timeout_s: float = 30.0, plot: str = "measured:nir1"
+) -> float:
     """Open the page, wait until BokehJS has built the document and the panels are drawn, start
-    the watcher; the load time, s (navigation start to the first drawn status panel)."""
+    the watcher (following the newest ``t`` of the data source ``plot``); the load time, s
+    (navigation start to the first drawn status panel)."""
     t0 = time.time()
     driver.get(url)
     end = time.monotonic() + timeout_s
@@ -117,7 +132,7 @@ def load_dashboard(driver: Any, url: str, timeout_s: float = 30.0) -> float:
     else:
         raise TimeoutError(f"the dashboard at {url} did not render in {timeout_s} s")
     loaded = time.time() - t0
-    driver.execute_script(WATCHER_JS)
+    driver.execute_script(WATCHER_JS, plot)
     return loaded
 
 
@@ -132,15 +147,18 @@ return has(document);
 
 
 def seen(driver: Any) -> dict[str, Any]:
-    """When (unix s) each alert id and each newest-NIR time first showed in the page, and how
-    many frames the page has drawn since the watcher started."""
+    """When (unix s) each alert id and each newest-NIR time first showed in the page, how many
+    frames the page has drawn since the watcher started, and each newest ``t`` of the followed
+    plot with when it came (``plotted``)."""
     raw = driver.execute_script(
-        "const w = window.__twin; return {alerts: w.alerts, nir: w.nir, frames: w.frames};"
+        "const w = window.__twin;"
+        "return {alerts: w.alerts, nir: w.nir, frames: w.frames, plotted: w.plotted};"
     )
     return {
         "alerts": {k: v / 1000.0 for k, v in raw["alerts"].items()},
         "nir": {k: v / 1000.0 for k, v in raw["nir"].items()},
         "frames": raw["frames"],
+        "plotted": [(t, at / 1000.0) for t, at in raw["plotted"]],
     }
 
 

@@ -3,8 +3,8 @@
 The supervised twin (feeder, blender, oos) gets the bundled recording at 200x; ``twin dashboard``
 follows its bus as a separate process; Chromium loads the page while the replay runs. Checked:
 
-- the plots update while the replay runs (the newest NIR sample in BokehJS's data source
-  advances);
+- the plots update while the replay runs (the newest NIR sample of BokehJS's data source
+  advances at least three times before the replay ends);
 - every OOS alert shows in the page within 1 s of its message: the test's own subscriber notes
   the wall time the alert reached it on loopback (its publish time within a millisecond), the
   page's watcher the wall time its row first appeared in the DOM (same machine clock);
@@ -121,16 +121,15 @@ def test_dashboard_follows_the_twin_in_chromium(tmp_path, browser):
             )
             replay.start()
             assert wait_until(lambda: sources(browser).get(NIR, (0, None))[0] > 0, 20)
-            first = sources(browser)[NIR][1]
-            time.sleep(2.0)
-            second = sources(browser)[NIR][1]
             browser.save_screenshot(str(ARTIFACTS / "dashboard_during_replay.png"))
             assert done.wait(60), "the replay did not finish"
+            replay_end = time.time()
             assert wait_until(lambda: len(clock.at) >= 3, 30), clock.at
             in_page = wait_until(lambda: set(clock.at) <= set(seen(browser)["alerts"]), 5)
             assert in_page, (clock.at, seen(browser)["alerts"], sorted(seen(browser)["nir"])[-3:])
         browser.save_screenshot(str(ARTIFACTS / "dashboard_after_replay.png"))
         shown = seen(browser)["alerts"]
+        plotted = seen(browser)["plotted"]
         latency = {a: shown[a] - t for a, t in clock.at.items()}
         resources = browser.execute_script(
             "return performance.getEntriesByType('resource').map(e => e.name)"
@@ -148,7 +147,8 @@ def test_dashboard_follows_the_twin_in_chromium(tmp_path, browser):
     (ARTIFACTS / "dashboard_latency.json").write_text(
         json.dumps({"alert_to_page_s": latency, "page_load_s": load_s}, indent=2)
     )
-    assert second > first, f"the NIR plot did not advance during the replay ({first} -> {second} s)"
+    during = [t for t, at in plotted if at <= replay_end]
+    assert len(during) >= 3 and during == sorted(during), f"NIR plot during the replay: {during}"
     assert len(latency) == 3, latency  # one alert per tracer pulse
     assert max(latency.values()) <= ALERT_LATENCY_S, f"alert -> page latency {latency} s"
     assert offsite == [], f"the page references URLs off {url}: {offsite}"
