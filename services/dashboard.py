@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import html
 import logging
+import math
 import queue
 import threading
 import time
@@ -46,6 +47,8 @@ DEFAULT_PERIOD_MS = 200
 DEFAULT_MAX_POINTS = 1500
 #: plant time shown in the plots, s (the last hour)
 DEFAULT_WINDOW_S = 3600.0
+#: how often the slow panels (estimates, findings, service health) are redrawn at most, s
+SLOW_PANELS_S = 1.0
 
 ALERT_COLOR = "#d62728"
 DIVERT_COLOR = "#ff7f0e"
@@ -313,9 +316,17 @@ tr.alert td { background: #fde0e0; }
 
 
 class Page:
-    """The Bokeh document of one browser: plots and panels, refreshed from the hub."""
+    """The Bokeh document of one browser: plots and panels, refreshed from the hub; the slow
+    panels (estimates, findings, service health) at most every ``slow_panels_s``."""
 
-    def __init__(self, doc: Any, hub: DashboardHub, period_ms: int, window_s: float) -> None:
+    def __init__(
+        self,
+        doc: Any,
+        hub: DashboardHub,
+        period_ms: int,
+        window_s: float,
+        slow_panels_s: float = SLOW_PANELS_S,
+    ) -> None:
         from bokeh.layouts import column, row
         from bokeh.models import ColumnDataSource, Div
 
@@ -329,13 +340,15 @@ class Page:
         self.flows = self._flow_figure(spec)
         self.rtd = self._rtd_figure(spec)
         self.drawn_estimate: tuple[float, str] | None = None
+        self.panels_at = -math.inf
+        self.slow_panels_s = slow_panels_s
         self.feeds = {
             name: PlotFeed(hub.max_points, window_s)
             for name in self.sources
             if name.split(":")[0] in ("measured", "predicted", "flow")
         }
         self.divs = {
-            name: Div(name=name, text="", sizing_mode="stretch_width")
+            name: Div(name=name, text="", sizing_mode="stretch_width", disable_math=True)
             for name in ("status", "diverter", "alerts", "blender", "findings", "health")
         }
         style = Div(text=STYLE)
@@ -480,9 +493,12 @@ class Page:
             elif change is not None:
                 self.sources[name].data = change[1]
         self._show_newest_estimate(view)
-        self.divs["blender"].text = blender_html(view)
-        self.divs["findings"].text = findings_html(view)
-        self.divs["health"].text = health_html(view, time.time())
+        now = time.time()
+        if now - self.panels_at >= self.slow_panels_s:  # estimates, findings, health
+            self.panels_at = now
+            self.divs["blender"].text = blender_html(view)
+            self.divs["findings"].text = findings_html(view)
+            self.divs["health"].text = health_html(view, now)
 
 
 def id_of(doc: Any) -> str:

@@ -75,7 +75,7 @@ def test_estimate_curve_and_findings_panel():
     their status, newest first."""
     spec = LineSpec.from_file(CONFIG)
     hub = DashboardHub(spec)
-    page = Page(Document(), hub, period_ms=200, window_s=3600.0)
+    page = Page(Document(), hub, period_ms=200, window_s=3600.0, slow_panels_s=0.0)
     b = spec.blender
     hub.put(
         "twin/line1/rtd/estimate",
