@@ -244,6 +244,18 @@ def blender_html(view: DashboardView) -> str:
         else "<p>no RTD estimate yet</p>"
     )
     model = _esc(view.blender_model or "no prediction yet")
+    m = view.model_in_use
+    if m is not None:
+        point = ", ".join(
+            f"{label} {m[k]:g}"
+            for k, label in (("blade_speed_rpm", "blade rpm"), ("throughput_kg_h", "kg/h"))
+            if m[k] is not None
+        )
+        model = (
+            f"{_esc(m['kind'])} {_esc(m['name'])} from {m['applies_from_s']:.0f} s "
+            f"({_esc(m['reason'])}{'; ' + point if point else ''}; MRT "
+            f"{m['mean_residence_time_s']:.1f} s)"
+        )
     return f"<b>Blender model</b>: {model}<br><b>RTD estimates</b>{table}"
 
 

@@ -12,7 +12,7 @@ from bokeh.document import Document
 
 from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
-from schemas.messages import RtdEstimate
+from schemas.messages import BlenderModelInUse, RtdEstimate
 from services.bus import free_port
 from services.dashboard import DashboardHub, Page, make_server, start_recording_feed
 from services.recording import read_recording
@@ -84,8 +84,20 @@ def test_estimate_curve_and_findings_panel():
     hub.put("twin/line1/closeloop/finding", finding("consistent", 900.0))
     hub.put("twin/line1/closeloop/finding", finding("unexplained", 1200.0))
     page.refresh()
+    assert "axial_dispersion_open" in page.divs["blender"].text  # the model of the predictions
+    hub.put(
+        "twin/line1/blender/outlet/model_in_use",
+        BlenderModelInUse(
+            t=600.0, seq=0, kind="compartment", name="zones-120rpm", reason="blade_speed",
+            applies_from_s=600.0, blade_speed_rpm=120.0, mean_residence_time_s=31.5,
+        ),
+    )  # fmt: skip
+    page.refresh()
+    assert "compartment zones-120rpm from 600 s (blade_speed; blade rpm 120; MRT 31.5 s)" in (
+        page.divs["blender"].text
+    )
     assert page.sources["rtd_estimate"].data["e"] == declared_kernel(spec).tolist()
     text = page.divs["findings"].text
     assert text.index("line1.closeloop-1200000") < text.index("line1.closeloop-900000")
     assert "status-unexplained" in text and "status-consistent" in text
-    assert "axial_dispersion_open" in page.divs["blender"].text
+    assert "axial_dispersion_open" in page.divs["blender"].text  # the estimates table

@@ -116,6 +116,8 @@ class DashboardView:
     refill_windows: dict[str, list[Window]]
     diverter: DiverterState
     blender_model: str | None
+    #: the newest ``BlenderModelInUse`` (kind, name, reason, applies from, operating point)
+    model_in_use: dict[str, Any] | None
     rtd_estimates: list[dict[str, Any]]
     findings: list[dict[str, Any]]
     health: dict[str, dict[str, Any]]
@@ -150,6 +152,7 @@ class DashboardState:
     _findings: deque = field(default_factory=deque)
     _health: dict[str, Any] = field(default_factory=dict)
     _blender_model: str | None = None
+    _model_in_use: Any = None
 
     # ----------------------------------------------------------------------------- input
 
@@ -188,6 +191,9 @@ class DashboardState:
             msg.t, msg.concentration_pct_w_w, msg.lower_pct_w_w, msg.upper_pct_w_w
         )
         self._blender_model = msg.model
+
+    def _on_BlenderModelInUse(self, key: str, msg: Any) -> None:  # noqa: N802
+        self._model_in_use = msg
 
     def _on_Event(self, key: str, msg: Any) -> None:  # noqa: N802
         if msg.kind == "refill_start":
@@ -279,6 +285,9 @@ class DashboardState:
             refill_windows=self.refill_windows(),
             diverter=self.diverter(),
             blender_model=self._blender_model,
+            model_in_use=None
+            if self._model_in_use is None
+            else _fields(self._model_in_use, MODEL_FIELDS),
             rtd_estimates=[_rtd_row(e) for e in self._rtd],
             findings=[_finding_row(f) for f in self._findings],
             health={name: _health_row(h) for name, h in sorted(self._health.items())},
@@ -358,6 +367,11 @@ RTD_FIELDS = (
 )  # fmt: skip
 FINDING_FIELDS = (
     "finding_id", "t", "status", "t_start_s", "t_end_s", "product_at_risk", "remaining",
+)  # fmt: skip
+
+MODEL_FIELDS = (
+    "kind", "name", "reason", "applies_from_s", "blade_speed_rpm", "throughput_kg_h",
+    "mean_residence_time_s", "rule",
 )  # fmt: skip
 
 
