@@ -65,7 +65,7 @@ class RejectedMessage:
 
 class DashboardHub:
     """The one state behind every page: a queue the feeds put on, drained on the server's
-    thread (:meth:`drain`), and the state's decimated view cached per version."""
+    thread (:meth:`drain`), and the state's view cached per version."""
 
     def __init__(self, spec: LineSpec, max_points: int = DEFAULT_MAX_POINTS) -> None:
         self.spec = spec
