@@ -77,6 +77,8 @@ class DashboardHub:
         self._wake: dict[str, Callable[[], None]] = {}
         self._wake_lock = threading.Lock()
         self.finished = threading.Event()
+        #: the bus feed's counters (received, rejected_*), when the page follows a bus
+        self.bus_counters: Callable[[], dict[str, int]] = dict
 
     def put(self, key: str, msg: Any) -> None:
         """Hand one validated message over (any thread; never blocks). An alert or divert
@@ -134,7 +136,7 @@ class BusFeed:
         )
         self._alerts = AlertFeed(session, line, hub.put, divert=True)
         self._hub = hub
-        self.counters = self._sub.counters
+        hub.bus_counters = self._sub.counters.snapshot
 
     def _on_message(self, key: str, msg: Any) -> None:
         if not isinstance(msg, OosAlert | DivertCommand):  # these come through the AlertFeed
@@ -278,9 +280,9 @@ def findings_html(view: DashboardView) -> str:
     )
 
 
-def health_html(view: DashboardView, now_unix: float) -> str:
-    """Each service's health (state, plant time, age of the report, counters) and the page's
-    own message counters."""
+def health_html(view: DashboardView, now_unix: float, own: dict[str, int] | None = None) -> str:
+    """Each service's health (state, plant time, age of the report, counters), the messages the
+    page has seen by type and the dashboard's own bus counters ``own`` (received, rejected)."""
     rows = [
         [
             _esc(name),
@@ -297,7 +299,11 @@ def health_html(view: DashboardView, now_unix: float) -> str:
         else "<p>no service reports (a recording, or no twin running)</p>"
     )
     counts = ", ".join(f"{k}={v}" for k, v in sorted(view.counters.items()))
-    return f"<b>Services</b>{table}<b>Messages seen</b>: {_esc(counts) or 'none'}"
+    text = f"<b>Services</b>{table}<b>Messages seen</b>: {_esc(counts) or 'none'}"
+    if own:
+        bus = ", ".join(f"{k}={v}" for k, v in sorted(own.items()))
+        text += f"<br><b>Dashboard on the bus</b>: {_esc(bus)}"
+    return text
 
 
 def status_html(hub: DashboardHub, view: DashboardView) -> str:
@@ -510,7 +516,7 @@ class Page:
             self.panels_at = now
             self.divs["blender"].text = blender_html(view)
             self.divs["findings"].text = findings_html(view)
-            self.divs["health"].text = health_html(view, now)
+            self.divs["health"].text = health_html(view, now, self.hub.bus_counters())
 
 
 def id_of(doc: Any) -> str:

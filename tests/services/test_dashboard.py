@@ -4,7 +4,11 @@ references only its own origin."""
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
 import threading
+import time
 import urllib.request
 from pathlib import Path
 
@@ -14,7 +18,7 @@ from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import BlenderModelInUse, RtdEstimate
 from services.bus import free_port
-from services.dashboard import DashboardHub, Page, make_server, start_recording_feed
+from services.dashboard import DashboardHub, Page, health_html, make_server, start_recording_feed
 from services.recording import read_recording
 from twin_core.online.blender import declared_kernel
 
@@ -101,3 +105,40 @@ def test_estimate_curve_and_findings_panel():
     assert text.index("line1.closeloop-1200000") < text.index("line1.closeloop-900000")
     assert "status-unexplained" in text and "status-consistent" in text
     assert "axial_dispersion_open" in page.divs["blender"].text  # the estimates table
+
+
+def test_cli_serves_a_recording_and_stops_cleanly_on_sigterm():
+    """``twin dashboard --recording``: the page is served on loopback, SIGTERM stops it with
+    exit status 0."""
+    port = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli.main", "dashboard", "--config", str(CONFIG)]
+        + ["--recording", str(RECORDING), "--speed", "1000", "--port", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        first = proc.stdout.readline()
+        assert f"http://127.0.0.1:{port}/" in first and "line1_30min.mcap at 1000x" in first
+        html = ""
+        for _ in range(100):
+            try:
+                html = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).read()
+                break
+            except OSError:
+                time.sleep(0.1)
+        assert b"powder-twin line1" in html
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_health_panel_shows_the_dashboards_own_rejections():
+    view = DashboardHub(LineSpec.from_file(CONFIG)).view()
+    text = health_html(view, 0.0, {"received": 5, "rejected_json": 2})
+    assert "Dashboard on the bus</b>: received=5, rejected_json=2" in text
+    assert "Dashboard on the bus" not in health_html(view, 0.0, {})
