@@ -59,10 +59,16 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     stopping = False
     session = feed = None
     if args.recording:
-        from services.recording import read_recording
+        from services.recording import read_recording, recording_mismatches
 
         rec = read_recording(args.recording)
         rec.require_complete(args.allow_partial)
+        found = recording_mismatches(rec, spec)
+        if found and not args.allow_mismatch:
+            raise ValueError(
+                f"the recording does not match the line configuration of --config "
+                f"(--allow-mismatch shows it anyway), {'; '.join(str(x) for x in found)}"
+            )
     else:
         from services.cli.live import _tool_session
 
@@ -114,6 +120,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--speed", type=float, default=1.0, help="replay speed of --recording")
     p.add_argument("--allow-partial", action="store_true", help="show a damaged recording")
+    p.add_argument(
+        "--allow-mismatch",
+        action="store_true",
+        help="show a recording whose feeders or sensor differ from --config",
+    )
     p.add_argument("--port", type=int, default=5006)
     p.add_argument("--address", default="127.0.0.1", help="listen address (default loopback)")
     p.add_argument(

@@ -5,6 +5,7 @@ exit status 2, no traceback, and creates nothing (no folder for an output in a m
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import pytest
 
@@ -154,3 +155,12 @@ def test_dashboard_refuses_a_public_address_and_bad_numbers(argv, named, capsys)
     """The page has no login: a non-loopback address needs --allow-remote."""
     line = check_one_line(*run(["dashboard", *argv], capsys))
     assert named in line
+
+
+def test_dashboard_refuses_a_recording_of_another_line(capsys):
+    """The bundled recording ran the line at 5 % API; the default configuration is the 10 % line:
+    its limits would frame the wrong target."""
+    rec = Path(__file__).resolve().parents[2] / "recordings" / "line1_30min.mcap"
+    line = check_one_line(*run(["dashboard", "--recording", str(rec)], capsys))
+    assert "does not match the line configuration" in line
+    assert "feeders.api.setpoint_kg_h" in line
