@@ -44,11 +44,14 @@ log = logging.getLogger(__name__)
 #: how often each page takes the queued messages in, ms
 DEFAULT_PERIOD_MS = 200
 #: points per plotted series at most
-DEFAULT_MAX_POINTS = 1500
+DEFAULT_MAX_POINTS = 600
 #: plant time shown in the plots, s (the last hour)
 DEFAULT_WINDOW_S = 3600.0
 #: how often the slow panels (estimates, findings, service health) are redrawn at most, s
 SLOW_PANELS_S = 1.0
+#: how often the plots get new data at most, s: a browser starved of CPU draws each update of
+#: thousands of points slowly, and updates it has not drawn yet delay the alerts behind them
+PLOT_PERIOD_S = 0.5
 
 ALERT_COLOR = "#d62728"
 DIVERT_COLOR = "#ff7f0e"
@@ -334,8 +337,9 @@ tr.alert td { background: #fde0e0; }
 
 
 class Page:
-    """The Bokeh document of one browser: plots and panels, refreshed from the hub; the slow
-    panels (estimates, findings, service health) at most every ``slow_panels_s``."""
+    """The Bokeh document of one browser: plots and panels, refreshed from the hub; the plots at
+    most every ``plot_period_s``, the slow panels (estimates, findings, service health) at most
+    every ``slow_panels_s``."""
 
     def __init__(
         self,
@@ -344,6 +348,7 @@ class Page:
         period_ms: int,
         window_s: float,
         slow_panels_s: float = SLOW_PANELS_S,
+        plot_period_s: float = PLOT_PERIOD_S,
     ) -> None:
         from bokeh.layouts import column, row
         from bokeh.models import ColumnDataSource, Div
@@ -360,6 +365,8 @@ class Page:
         self.drawn_estimate: tuple[float, str] | None = None
         self.panels_at = -math.inf
         self.slow_panels_s = slow_panels_s
+        self.plots_at = -math.inf
+        self.plot_period_s = plot_period_s
         self.feeds = {
             name: PlotFeed(hub.max_points, window_s)
             for name in self.sources
@@ -492,6 +499,15 @@ class Page:
             [(w.t_start_s, w.t_end_s) for w in view.divert_windows]
         )
 
+    def _show_series(self) -> None:
+        """Send each plot its new samples, or its decimated window (:class:`PlotFeed`)."""
+        for name, feed in self.feeds.items():
+            change = feed.update(self.hub.state.series(name))
+            if change is not None and change[0] == "stream":
+                self.sources[name].stream(change[1])
+            elif change is not None:
+                self.sources[name].data = change[1]
+
     def refresh(self) -> None:
         """Take the queued messages in; redraw what changed (the server's thread)."""
         self.hub.drain()
@@ -504,14 +520,13 @@ class Page:
         self.sources["refill_windows"].data = _strips(
             [(w.t_start_s, w.t_end_s) for ws in view.refill_windows.values() for w in ws]
         )
-        for name, feed in self.feeds.items():
-            change = feed.update(self.hub.state.series(name))
-            if change is not None and change[0] == "stream":
-                self.sources[name].stream(change[1])
-            elif change is not None:
-                self.sources[name].data = change[1]
-        self._show_newest_estimate(view)
         now = time.time()
+        if now - self.plots_at >= self.plot_period_s:
+            self.plots_at = now
+            self._show_series()
+        else:  # the plots wait for their period: come back for them
+            self.version = -1
+        self._show_newest_estimate(view)
         if now - self.panels_at >= self.slow_panels_s:  # estimates, findings, health
             self.panels_at = now
             self.divs["blender"].text = blender_html(view)

@@ -133,6 +133,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="allow a non-loopback --address (the page has no login)",
     )
     p.add_argument("--period-ms", type=int, default=200, help="page refresh period, ms")
-    p.add_argument("--max-points", type=int, default=1500, help="points per plotted series")
+    p.add_argument("--max-points", type=int, default=600, help="points per plotted series")
     p.add_argument("--window-s", type=float, default=3600.0, help="plant time shown, s")
     p.set_defaults(func=cmd_dashboard)
