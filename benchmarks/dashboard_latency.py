@@ -6,9 +6,10 @@ Method: this process hosts a zenoh router on loopback and publishes the bundled 
 replay schedule of ``twin replay`` (``services.recording.replay``), noting the wall time each
 NIR sample left. ``twin dashboard`` (a separate process) follows the bus; Chromium (the
 ``tests/e2e/browser.py`` driver) loads the page and a watcher run on every animation frame
-notes when each newest-NIR-sample time first shows in the page's DOM. Latency = that time minus
-the sample's publish time (same machine clock); at 200x a page refresh (200 ms) covers 40
-samples and shows the newest, so the latencies are those of the samples drawn. Page load: from
+notes the frame at which each sample first is the newest point of the NIR plot's data in
+BokehJS (the frame that draws it). Latency = that time minus the sample's publish time (same
+machine clock); at 200x a plot update (at most every 0.5 s) brings about 100 samples and the
+newest is measured, so the latencies are those of the samples drawn last. Page load: from
 ``driver.get`` to the first drawn panels (BokehJS loaded, document built), cold (first load of
 the browser) and warm (second). CPU: user + system time of the dashboard process
 (``/proc/<pid>/stat``) over the replay's wall time.
@@ -79,7 +80,9 @@ def run_speed(session, rec: Recording, speed: float, driver, pid: int) -> dict[s
     cpu = cpu_seconds(pid) - cpu0
     wall = time.time() - wall0
     page = seen(driver)
-    shown = page["nir"]
+    shown: dict[str, float] = {}
+    for t, at in page["plotted"]:  # the NIR plot's newest sample, frame by frame
+        shown.setdefault(f"{t:g}", at)
     lat = np.array([shown[t] - published[t] for t in shown if t in published])
     return {
         "speed": speed,
