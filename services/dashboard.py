@@ -47,7 +47,8 @@ DEFAULT_PERIOD_MS = 200
 DEFAULT_MAX_POINTS = 600
 #: plant time shown in the plots, s (the last hour)
 DEFAULT_WINDOW_S = 3600.0
-#: how often the slow panels (estimates, findings, service health) are redrawn at most, s
+#: how often the slow panels (header, estimates, findings, service health) are redrawn at most,
+#: s: a changed panel makes the browser lay the page out again
 SLOW_PANELS_S = 1.0
 #: how often the plots get new data at most, s: a browser starved of CPU draws each update of
 #: thousands of points slowly, and updates it has not drawn yet delay the alerts behind them
@@ -228,7 +229,7 @@ def diverter_html(view: DashboardView) -> str:
         else "<span class='accepting'>accepting</span>"
     )
     upcoming = ", ".join(_window_text(w) for w in d.upcoming[:8]) or "none"
-    return f"<b>Diverter</b> at {d.t_s:.0f} s: {state}<br>upcoming divert windows: {upcoming}"
+    return f"<b>Diverter</b>: {state}<br>upcoming divert windows: {upcoming}"
 
 
 def blender_html(view: DashboardView) -> str:
@@ -338,8 +339,8 @@ tr.alert td { background: #fde0e0; }
 
 class Page:
     """The Bokeh document of one browser: plots and panels, refreshed from the hub; the plots at
-    most every ``plot_period_s``, the slow panels (estimates, findings, service health) at most
-    every ``slow_panels_s``."""
+    most every ``plot_period_s``, the slow panels (header, estimates, findings, service health)
+    at most every ``slow_panels_s``."""
 
     def __init__(
         self,
@@ -516,7 +517,6 @@ class Page:
         self.version = self.hub.state.version
         view = self.hub.view()
         self._show_alerts(view)
-        self.divs["status"].text = status_html(self.hub, view)
         self.sources["refill_windows"].data = _strips(
             [(w.t_start_s, w.t_end_s) for ws in view.refill_windows.values() for w in ws]
         )
@@ -529,6 +529,7 @@ class Page:
         self._show_newest_estimate(view)
         if now - self.panels_at >= self.slow_panels_s:  # estimates, findings, health
             self.panels_at = now
+            self.divs["status"].text = status_html(self.hub, view)
             self.divs["blender"].text = blender_html(view)
             self.divs["findings"].text = findings_html(view)
             self.divs["health"].text = health_html(view, now, self.hub.bus_counters())
