@@ -1,6 +1,6 @@
 """``twin dashboard`` in a real browser (headless Chromium) while the live twin runs a replay.
 
-The supervised twin (feeder, blender, oos) gets the bundled recording at 200x; ``twin dashboard``
+The supervised twin (feeder, blender, oos) gets the bundled recording at 100x; ``twin dashboard``
 follows its bus as a separate process; Chromium loads the page while the replay runs. Checked:
 
 - the plots update while the replay runs (the newest NIR sample of BokehJS's data source
@@ -50,7 +50,10 @@ ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "services" / "configs" / "line1_5pct.yaml"
 RECORDING = ROOT / "recordings" / "line1_30min.mcap"
 ARTIFACTS = ROOT / "out" / "test_artifacts"
-SPEED = 200.0
+#: the replay's speed: 100x keeps the test near half a minute of replay while leaving the shared
+#: machine's CPU to the page (the dashboard's keeping up with 200x is measured by
+#: benchmarks/dashboard_latency.py)
+SPEED = 100.0
 #: the issue's bound: an alert on the screen within 1 s of its message
 ALERT_LATENCY_S = 1.0
 NIR = "measured:nir1"
