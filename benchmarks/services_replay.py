@@ -66,9 +66,7 @@ def main() -> int:
         tap = _Tap(spec, echo=False)
         time.sleep(1.5)
         last_t = rec.messages[-1].t
-        with BusReplay(
-            rec, spec=spec, settle_s=0.5, service_name="plant", install_signal_handlers=False
-        ) as rp:
+        with BusReplay.as_plant(rec, None, spec) as rp:
             w0 = time.perf_counter()
             n = rp.replay(as_fast_as_possible=True).published
             w_pub = time.perf_counter() - w0

@@ -1051,6 +1051,21 @@ class BusReplay:
         self.pubs: dict[str, Any] = {}
         self._baseline: Any = None
 
+    @classmethod
+    def as_plant(cls, rec: Recording, config: Any, spec: Any) -> BusReplay:
+        """The virtual plant replaying ``rec`` into a running twin of ``spec`` as the ``plant``
+        identity (``config``: its client configuration, e.g. ``Supervisor.client_config
+        ("plant")``), half a second after its publishers are up, no signal handlers (a tool or
+        test drives it): ``with BusReplay.as_plant(rec, cfg, spec) as rp: rp.replay(...)``."""
+        return cls(
+            rec,
+            config,
+            spec=spec,
+            settle_s=0.5,
+            service_name="plant",
+            install_signal_handlers=False,
+        )
+
     @property
     def _line(self) -> str:
         """The line whose services are pinged: the twin's (a secured bus lets a tool query its

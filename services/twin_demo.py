@@ -276,14 +276,7 @@ def _feed_recording(
     (messages published, the open replay, closed by the caller after the drain)."""
     from services.recording import BusReplay
 
-    rp = BusReplay(
-        rec,
-        sup.client_config("plant"),
-        spec=spec,
-        settle_s=0.5,
-        service_name="plant",
-        install_signal_handlers=False,
-    ).__enter__()
+    rp = BusReplay.as_plant(rec, sup.client_config("plant"), spec).__enter__()
     stats = rp.replay(
         speed=speed if math.isfinite(speed) else 1.0,
         as_fast_as_possible=not math.isfinite(speed),

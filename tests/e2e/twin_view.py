@@ -79,14 +79,7 @@ def wait_until(pred, timeout: float) -> bool:
 def plant_replay(rec: Recording, sup: Supervisor) -> BusReplay:
     """The virtual plant replaying ``rec`` into the supervised twin, as the ``plant`` identity
     (a context manager: ``with plant_replay(rec, sup) as rp: rp.replay(speed=...)``)."""
-    return BusReplay(
-        rec,
-        sup.client_config("plant"),
-        spec=sup.spec,
-        settle_s=0.5,
-        service_name="plant",
-        install_signal_handlers=False,
-    )
+    return BusReplay.as_plant(rec, sup.client_config("plant"), sup.spec)
 
 
 def expected_windows(spec: LineSpec, disturbances: list[dict]) -> list[tuple[float, float]]:

@@ -99,14 +99,7 @@ def live(tmp_path_factory):
                 held.set()
 
             held = threading.Event()
-            with BusReplay(
-                rec,
-                sup.client_config("plant"),
-                spec=spec,
-                settle_s=0.5,
-                service_name="plant",
-                install_signal_handlers=False,
-            ) as rp:
+            with BusReplay.as_plant(rec, sup.client_config("plant"), spec) as rp:
                 rp.replay(speed=200.0, hold=wait_for_adoption)
                 end = time.monotonic() + 90
                 while time.monotonic() < end and len(findings) < n_windows:

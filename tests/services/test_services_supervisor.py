@@ -101,14 +101,7 @@ def test_a_dead_model_does_not_block_measured_oos_decisions(tmp_path):
                 zenoh.handlers.Callback(on_health, lambda: None),
             ),
         ]
-        with BusReplay(
-            rec,
-            sup.client_config("plant"),
-            spec=spec,
-            settle_s=0.5,
-            service_name="plant",
-            install_signal_handlers=False,
-        ) as rp:
+        with BusReplay.as_plant(rec, sup.client_config("plant"), spec) as rp:
             rp.replay(speed=90.0)
             t_end = time.monotonic()
             time.sleep(1.5)
