@@ -1,4 +1,4 @@
-"""``twin dem run SCENE.yaml [--out DIR] [--resume] [--threads N]``: run a DEM scene of the seed
+"""``twin dem run SCENE.yaml [--out DIR] [--resume] [--threads auto|N]``: run a DEM scene of the seed
 (blender section, drawdown test, feeder, silo) from its config file and write results, fields,
 frames, STL geometry and PNG figures. ``twin dem warmup``: compile the engine's kernels into
 numba's cache, saying what it compiles (once after installing; ``twin dem run`` runs it first)."""
@@ -6,6 +6,7 @@ numba's cache, saying what it compiles (once after installing; ``twin dem run`` 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 from pathlib import Path
@@ -22,7 +23,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--out", type=Path, default=None, help="output directory (default out/dem/<name>)"
     )
     r.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
-    r.add_argument("--threads", type=int, default=None, help="numba threads (default: all)")
+    r.add_argument(
+        "--threads",
+        default="auto",
+        help="numba threads, or 'auto' (default): 1 or all, chosen by measured throughput "
+        "while it runs (twin_core.dem.threads)",
+    )
     r.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     r.set_defaults(func=cmd_run)
     w = sub.add_parser(
@@ -40,14 +46,26 @@ def cmd_run(args: argparse.Namespace) -> int:
         cfg = load_scene(args.scene)
     except ValueError as exc:
         raise ValueError(f"invalid scene, {args.scene}: {exc}") from None
-    if args.threads is not None:
+    from twin_core.dem.threads import adaptive_threads
+
+    policy = contextlib.nullcontext()
+    if args.threads == "auto":
+        policy = adaptive_threads()
+    else:
         import numba
 
-        if args.threads < 1:
-            raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+        try:
+            threads = int(args.threads)
+        except ValueError:
+            raise ValueError(
+                f"--threads must be 'auto' or an integer, got {args.threads!r}"
+            ) from None
+        if threads < 1:
+            raise ValueError(f"--threads must be >= 1, got {threads}")
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     out = args.out or Path("out") / "dem" / cfg.name
-    summary = run_scene(cfg, out, resume=args.resume, progress=not args.no_progress)
+    with policy:
+        summary = run_scene(cfg, out, resume=args.resume, progress=not args.no_progress)
     print(json.dumps(summary, indent=1, default=str))
     return 0
 

@@ -28,6 +28,7 @@ from .meshes import update_mesh
 from .motion import RotationMotion, TranslationMotion, motion_from_dict
 from .partition import rebuild
 from .space import NPC
+from .threads import ThreadChooser, current_policy
 
 __all__ = ["Simulation"]
 
@@ -132,6 +133,12 @@ class Simulation:
         self.skin: float | None = float(skin) if skin is not None else None
         self.seed = int(seed)
         self.pair_scheme = pair_scheme
+        #: ``"adaptive"``: choose 1 or all numba threads at run time by measured throughput
+        #: (:mod:`twin_core.dem.threads`); ``"fixed"``: the caller's thread count; None: follow
+        #: ``twin_core.dem.threads.adaptive_threads()``
+        self.thread_policy: str | None = None
+        #: the chooser of the adaptive policy (made at the first adaptive run; may be given)
+        self.thread_chooser: ThreadChooser | None = None
         self._serial()
         self._step = 0
         self._next_id = 0
@@ -863,6 +870,8 @@ class Simulation:
         done = 0
         chunk_max = 64
         self._check_resolution()
+        threads0 = numba.get_num_threads()
+        chooser = self._thread_chooser(threads0)
         try:
             while done < nsteps or (done == 0 and nsteps == 0):
                 self._insert_due()
@@ -877,21 +886,8 @@ class Simulation:
                 nf = self._next_factory_step()
                 if nf is not None:
                     chunk = min(chunk, max(1, nf - self._step))
-                t0 = time.perf_counter()
                 n0 = self._n
-                status, k, n = advance(
-                    chunk, self._step, dt, self._n, self._P, self._F, self._IA, self._XB,
-                    self._rm, self._disp2, self._whist,
-                    self._nb, self._hist, self._nown, self._rev_o, self._rev_k, self._nrev,
-                    self._pf, self._acc, self._cur, self._tri_nb, self._thist, self._ntri,
-                    self._tri_tmp, self._tri_x0, self._tri_x, self._tri_xb, self._tri_mesh,
-                    self._mesh_par,
-                    bool(np.any(self._mesh_par[:, 0] != 0)) if len(self._mesh_par) else False,
-                    self._planes, self._cyls, self._sinks, self._pt, self._dom, self._per,
-                    self._grav, self._skin(), max(self._rmax, 1e-12), self._removed,
-                    self._counters, self._serial(),
-                )  # fmt: skip
-                el = time.perf_counter() - t0
+                status, k, n, el = self._advance(chunk, dt, chooser)
                 self.wall_time_s += el
                 self._step += int(k)
                 done += int(k)
@@ -909,9 +905,47 @@ class Simulation:
                     callback(self)
                 self._check_resolution()
         finally:
+            numba.set_num_threads(threads0)
             if bar is not None:
                 bar.close()
         return self
+
+    def _advance(
+        self, chunk: int, dt: float, chooser: ThreadChooser | None
+    ) -> tuple[int, int, int, float]:
+        """``chunk`` steps of the integrator (on the thread count the chooser picks): (status,
+        steps done, particles, wall seconds)."""
+        if chooser is not None:
+            numba.set_num_threads(chooser.next_threads())
+        n0 = self._n
+        t0 = time.perf_counter()
+        status, k, n = advance(
+            chunk, self._step, dt, self._n, self._P, self._F, self._IA, self._XB,
+            self._rm, self._disp2, self._whist,
+            self._nb, self._hist, self._nown, self._rev_o, self._rev_k, self._nrev,
+            self._pf, self._acc, self._cur, self._tri_nb, self._thist, self._ntri,
+            self._tri_tmp, self._tri_x0, self._tri_x, self._tri_xb, self._tri_mesh,
+            self._mesh_par,
+            bool(np.any(self._mesh_par[:, 0] != 0)) if len(self._mesh_par) else False,
+            self._planes, self._cyls, self._sinks, self._pt, self._dom, self._per,
+            self._grav, self._skin(), max(self._rmax, 1e-12), self._removed,
+            self._counters, self._serial(),
+        )  # fmt: skip
+        el = time.perf_counter() - t0
+        if chooser is not None:
+            chooser.record(numba.get_num_threads(), n0 * int(k), el)
+        return int(status), int(k), int(n), el
+
+    def _thread_chooser(self, max_threads: int) -> ThreadChooser | None:
+        """The run's thread chooser when the thread policy is adaptive (kept across runs)."""
+        policy = self.thread_policy if self.thread_policy is not None else current_policy()
+        if policy not in ("adaptive", "fixed"):
+            raise ValueError(f"thread_policy must be 'adaptive' or 'fixed', got {policy!r}")
+        if policy != "adaptive" or max_threads < 2:
+            return None
+        if self.thread_chooser is None or self.thread_chooser.candidates[-1] != max_threads:
+            self.thread_chooser = ThreadChooser(max_threads)
+        return self.thread_chooser
 
     def _next_factory_step(self) -> int | None:
         best = None

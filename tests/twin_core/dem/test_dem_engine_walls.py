@@ -16,6 +16,7 @@ from twin_core.dem import (
     Simulation,
     TranslationMotion,
 )
+from twin_core.dem.threads import ThreadChooser
 
 R = 1e-3
 G = 9.81
@@ -353,6 +354,50 @@ def test_results_do_not_depend_on_thread_count():
     b.run(0.03)
     assert np.array_equal(a.pos, b.pos)
     assert np.array_equal(a.omega, b.omega)
+
+
+def test_threads_chosen_at_run_time_keep_the_trajectory():
+    """The adaptive policy (twin_core.dem.threads) switches between one thread (serial scatter)
+    and two (two-pass) from chunk to chunk; a chooser with instant probes and holds alternates
+    them every chunk: the trajectory is bit-identical to one thread's, and the caller's thread
+    count is back after the run."""
+    ref = _bed(pair_scheme="scatter")
+    ref.run(0.03)
+    threads = min(2, numba.config.NUMBA_NUM_THREADS)
+    numba.set_num_threads(threads)
+    b = _bed()
+    b.thread_policy = "adaptive"
+    b.thread_chooser = ThreadChooser(threads, probe_s=0.0, hold_s=0.0)
+    b.run(0.03, callback=lambda s: None, callback_every_s=0.001)
+    assert numba.get_num_threads() == threads
+    assert np.array_equal(ref.pos, b.pos)
+    assert np.array_equal(ref.omega, b.omega)
+    if threads > 1:  # a one-core machine has nothing to choose
+        assert len(b.thread_chooser.history) >= 5
+    with pytest.raises(ValueError, match="thread_policy must be"):
+        b.thread_policy = "fast"
+        b.run(0.001)
+
+
+def test_thread_chooser_follows_the_faster_count():
+    """Probe: one and two threads alternate until each has run probe_s; the faster (median
+    particle-steps per wall second) is kept for hold_s, then probed again (the load changed)."""
+    c = ThreadChooser(2, probe_s=1.0, hold_s=5.0)
+    rate = {1: 3.0e6, 2: 3.4e6}  # idle machine: two threads faster
+    for _ in range(6):
+        n = c.next_threads()
+        c.record(n, rate[n] * 0.5, 0.5)
+    assert c.chosen == 2 and c.history[-1][1] == {1: 3.0e6, 2: 3.4e6}
+    assert [c.next_threads() for _ in range(3)] == [2, 2, 2]
+    rate = {1: 3.0e6, 2: 2.1e6}  # loaded machine: two threads slower
+    for _ in range(10):
+        c.record(2, rate[2] * 0.5, 0.5)  # holding: 5 s
+    assert c.next_threads() in (1, 2) and len(c.history) == 1
+    for _ in range(6):
+        n = c.next_threads()
+        c.record(n, rate[n] * 0.5, 0.5)
+    assert c.chosen == 1 and len(c.history) == 2
+    assert ThreadChooser(1).next_threads() == 1
 
 
 def test_bad_input_raises_value_error():

@@ -16,7 +16,7 @@ DEM = Path(twin_core.dem.__file__).parent
 
 # lowest layer first; a module may import only modules of strictly lower layers
 LAYERS = [
-    {"space", "materials", "motion", "stl", "frames"},
+    {"space", "materials", "motion", "stl", "frames", "threads"},
     {"contact", "vtk"},
     {"meshes"},
     {"partition"},
