@@ -231,13 +231,21 @@ REFERENCE_LABEL = "predicted (Table 6.2 axial dispersion)"
 def reference_prediction(rec: Any, spec: LineSpec) -> dict[float, float]:
     """What the twin predicts for the sensor's component with the seed's Table 6.2 axial
     dispersion blender (``BlenderModelConfig`` defaults) from the recording's feeder flows and
-    tracer events, computed here (``twin_core.online.blender.BlenderPredictor``)."""
+    tracer events (:func:`stream_prediction`)."""
     from schemas.line import BlenderModelConfig
+
+    ad = spec.model_copy(update={"blender": BlenderModelConfig(kernel_s=spec.blender.kernel_s)})
+    return stream_prediction(rec, ad)
+
+
+def stream_prediction(rec: Any, spec: LineSpec) -> dict[float, float]:
+    """The blender of ``spec`` (no adoption: its declared model) predicting the sensor's
+    component from a recording's feeder flows and tracer events, in the recording's order
+    (``twin_core.online.blender.BlenderPredictor``, the blender service's core)."""
     from twin_core.online.blender import BlenderPredictor
     from twin_core.online.inlet import event_record
 
-    ad = spec.model_copy(update={"blender": BlenderModelConfig(kernel_s=spec.blender.kernel_s)})
-    core = BlenderPredictor(ad)
+    core = BlenderPredictor(spec)
     comp = spec.sensor.component
     out: dict[float, float] = {}
     for m in rec.messages:

@@ -118,7 +118,9 @@ def simulate_messages(
         (key, BlenderDrive(t=float(t), seq=i, blade_speed_rpm=float(rpm)))
         for i, (t, rpm) in enumerate(sorted(blade_speeds))
     ]
-    return run, sorted([*msgs, *drives], key=lambda km: km[1].t)
+    # a drive report comes before the other messages of its plant time (the blender switches
+    # from that tick on; coming after the tick's flows it would apply one tick late)
+    return run, sorted([*drives, *msgs], key=lambda km: km[1].t)
 
 
 def feeder_flow_messages(spec: LineSpec, duration_s: float) -> list[tuple[str, FeederFlow]]:
