@@ -110,8 +110,19 @@ def run_a(tmp_path_factory):
             killer_done = threading.Event()
 
             def kill_oos() -> None:
-                # after the first alert, before the second disturbance reaches the inlet
-                wait_until(lambda: len(col.alerts) >= 1, 60)
+                # after the first alert, before the second disturbance reaches the inlet; once
+                # the alert is in the diverter's output log (a kill between its publication and
+                # that write, a few microseconds, makes the restarted diverter publish it again:
+                # docs/services.md, "Restarts")
+                log = sup.run_dir / "oos.published"
+                wait_until(
+                    lambda: (
+                        len(col.alerts) >= 1
+                        and log.exists()
+                        and col.alerts[0].alert_id in log.read_text().split("\n")
+                    ),
+                    60,
+                )
                 pid = sup.pids()["oos"]
                 os.kill(pid, signal.SIGKILL)
                 out["killed_pid"] = pid
