@@ -39,7 +39,6 @@ import numpy as np
 
 from schemas.blender_model import BlenderModel
 from twin_core.compartment.blender_model import blender_model_rtd
-from twin_core.compartment.network import rtd_moments
 
 __all__ = [
     "SHIPPED_MODELS",
@@ -87,15 +86,6 @@ class HoldupRule:
                 )
 
 
-def _own_mean_s(model: BlenderModel) -> float:
-    """Mean of the whole blender's E_k(t) at the model's own time scale (trapezoid moments on
-    a grid of 40 x the flowing V/Q, 8,000 points)."""
-    t_end = 40.0 * model.mean_residence_time_s
-    t = np.linspace(0.0, t_end, 8001)
-    _, mean, _ = rtd_moments(t, np.asarray(blender_model_rtd(model, t), dtype=float))
-    return mean
-
-
 class ModelTable:
     """Section models at several blade speeds and the whole blender's E(t) at any operating
     point (module docstring).
@@ -108,7 +98,7 @@ class ModelTable:
 
     def __init__(self, models: Sequence[BlenderModel], rule: HoldupRule | None = None) -> None:
         self.rule = rule or HoldupRule()
-        self._models: dict[float, tuple[BlenderModel, float]] = {}
+        self._models: dict[float, BlenderModel] = {}
         for m in models:
             self.add(m)
         if not self._models:
@@ -118,7 +108,7 @@ class ModelTable:
         """Add ``model`` at its blade speed (replacing the one there)."""
         if model.rpm_basis is None:
             raise ValueError("model.rpm_basis must be given, got None")
-        self._models[float(model.rpm_basis)] = (model, _own_mean_s(model))
+        self._models[float(model.rpm_basis)] = model
 
     @property
     def speeds(self) -> list[float]:
@@ -127,12 +117,13 @@ class ModelTable:
 
     def conveying_frequency(self, rpm: float) -> float:
         """kappa(r) = q / V (1/s) of the blades (module docstring, step 1): the table models'
-        1 / tau_k interpolated linearly in r, through (0, 0) below the lowest speed,
+        1 / tau_k (tau_k = n V_k / q_k, ``BlenderModel.mean_residence_time_s``, the mean of the
+        network's E_k) interpolated linearly in r, through (0, 0) below the lowest speed,
         proportional to r above the highest."""
         if not (np.isfinite(rpm) and rpm > 0):
             raise ValueError(f"rpm must be finite and > 0, got {rpm!r}")
         r = np.array(self.speeds)
-        k = np.array([1.0 / self._models[s][1] for s in r])
+        k = np.array([1.0 / self._models[s].mean_residence_time_s for s in r])
         if rpm >= r[-1]:
             return float(k[-1] * rpm / r[-1])
         return float(np.interp(rpm, np.concatenate([[0.0], r]), np.concatenate([[0.0], k])))
@@ -170,8 +161,8 @@ class ModelTable:
         tau = self.mean_residence_time_s(point)
         e = np.zeros_like(t)
         for speed, w in self.weights(point.rpm):
-            model, tau_k = self._models[speed]
-            stretch = tau_k / tau
+            model = self._models[speed]
+            stretch = model.mean_residence_time_s / tau
             e += w * stretch * np.asarray(blender_model_rtd(model, t * stretch), dtype=float)
         return e
 
