@@ -92,11 +92,11 @@ def step_models(args: argparse.Namespace, speeds: list[float]) -> dict[float, di
     out = args.runs / "models"
     out.mkdir(parents=True, exist_ok=True)
     fields = {r: load_fields(args.runs / f"rpm_{r:g}" / "fields.npz") for r in speeds}
+    cfg = load_scene(args.scene)
+    window = cfg.mix_s
     reports = {}
     for r in speeds:
         transit = np.load(args.runs / f"rpm_{r:g}" / "transit_times.npz")["transit_s"]
-        cfg = load_scene(args.scene)
-        window = cfg.mix_s
         opts = BuildOptions(
             rpm=r,
             sections=args.sections,

@@ -15,8 +15,17 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
+from schemas import keys
 from schemas.line import LineSpec
-from schemas.messages import AdoptionProgress, DivertCommand, OosAlert, ServiceHealth
+from schemas.messages import (
+    AdoptionProgress,
+    BlenderDrive,
+    BlenderModelUpdate,
+    DivertCommand,
+    FeederFlow,
+    OosAlert,
+    ServiceHealth,
+)
 
 #: environment variable naming the run's state directory (set by the supervisor)
 STATE_ENV = "TWIN_STATE_DIR"
@@ -269,9 +278,6 @@ def follow_operating_point(service: Any, tracker: Any, key: str, msg: Any) -> No
     a ``BlenderModelUpdate`` (a new section model). Counted in ``operating_point_changes`` /
     ``models_received``; for an RTD-model blender, which has no law for the operating point, in
     ``operating_point_not_modelled``."""
-    from schemas import keys
-    from schemas.messages import BlenderDrive, BlenderModelUpdate, FeederFlow
-
     kernel = service.core.kernel
     if isinstance(msg, BlenderModelUpdate):
         if kernel.table is None:

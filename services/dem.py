@@ -160,10 +160,13 @@ class DemService(Service):
 
     # -- jobs --------------------------------------------------------------------------------
     def _pub(self, job: str, signal: str, model: type) -> Publisher:
-        k = keys.dem_job(self.spec.name, job, signal)
-        if k not in self._pubs:
-            self._pubs[k] = self.publisher(k, model, history=True)
-        return self._pubs[k]
+        return self._cached_pub(keys.dem_job(self.spec.name, job, signal), model)
+
+    def _cached_pub(self, key: str, model: type) -> Publisher:
+        """The service's one publisher (with history) of ``key``."""
+        if key not in self._pubs:
+            self._pubs[key] = self.publisher(key, model, history=True)
+        return self._pubs[key]
 
     def _progress(
         self, req: DemJobRequest, state: str, fraction: float, sim: Any = None, message: str = ""
@@ -305,10 +308,9 @@ class DemService(Service):
         self.counters.inc("models_published")
 
     def _pub_model(self) -> Publisher:
-        k = keys.blender_model_update(self.spec.name, "dem")
-        if k not in self._pubs:
-            self._pubs[k] = self.publisher(k, BlenderModelUpdate, history=True)
-        return self._pubs[k]
+        return self._cached_pub(
+            keys.blender_model_update(self.spec.name, "dem"), BlenderModelUpdate
+        )
 
     def finish(self) -> None:
         self.jobs.put(None)

@@ -104,8 +104,7 @@ class BlenderKernel:
             )
 
             self.table, self.point = table_from_config(b), configured_point(spec)
-            self._table_based = True
-            self.e = self.table.rtd(self.point, tick_grid(self.dt, self.length_s))
+            self._from_table()
         else:
             self.e = declared_kernel(spec) if e is None else np.asarray(e, float)
         #: model switches applied and not yet taken by :meth:`take_switches`: (plant time, reason)
@@ -172,13 +171,12 @@ class BlenderKernel:
         """E(t) from the table at the operating point; with adopted rtd-stage effects, on its
         axial-dispersion equivalent (the model the close-loop found them against: the declared
         line model of a compartment blender, ``twin_core.plant.model.rtd_blender_config``)."""
+        self._table_based = True
         if any(e.stage == "rtd" for e in self.effects):
             self.rtd_model = self.table.rtd_equivalent(self.point)
-            self._table_based = True
             self.e = self._with_effects()
         else:
             self.rtd_model = None
-            self._table_based = True
             self.e = self.table.rtd(self.point, tick_grid(self.dt, self.length_s))
 
     def adopt_model(self, model: Any) -> bool:
