@@ -17,7 +17,11 @@ decisions on samples published from the moment its health says ``running`` again
 ``--startup-s`` of them) and *after restart* (the rest). Decisions on samples published while
 the diverter was down or catching up are counted apart (*outage*): they wait for it by design.
 
-Run: ``python benchmarks/services_latency.py [--seconds 60] [--kill-at 30]``
+``--floor``: then the same decision path with nothing but zenoh in it
+(``benchmarks/bus_floor.py``: the same processes and hops, no validation, no computation), in
+the same run, for the part of the latency the transport takes on this machine.
+
+Run: ``python benchmarks/services_latency.py [--seconds 60] [--kill-at 30] [--floor]``
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import bus_floor  # noqa: E402
 from machine import describe  # noqa: E402
 
 from schemas import keys  # noqa: E402
@@ -213,6 +218,9 @@ def main() -> int:
         default="on",
         help="zenoh express publishers (on: the real-time setting of line1.yaml)",
     )
+    ap.add_argument(
+        "--floor", action="store_true", help="also time the bare-zenoh path (bus_floor.py)"
+    )
     a = ap.parse_args()
     state = Path(tempfile.mkdtemp(prefix="twin-lat-"))
     spec = line_spec(free_port(), a.services.split(","), a.express == "on", state)
@@ -273,6 +281,10 @@ def main() -> int:
         print("  where the time goes (steady and after restart; decisions with a prediction):")
         for name, v in split.items():
             print(f"    {name:<34} median {np.median(v):.2f} ms  p99 {np.percentile(v, 99):.2f} ms")
+    if a.floor:
+        floor = bus_floor.measure(a.seconds)
+        print("  the same path with nothing but zenoh in it (bus_floor.py, right after):")
+        print("    " + bus_floor.summary(floor, int(a.seconds / DT)))
     return 0
 
 
