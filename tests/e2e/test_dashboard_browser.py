@@ -133,7 +133,9 @@ def test_dashboard_follows_the_twin_in_chromium(tmp_path, browser):
             assert done.wait(60), "the replay did not finish"
             replay_end = time.time()
             assert wait_until(lambda: len(clock.at) >= 3, 30), clock.at
-            in_page = wait_until(lambda: set(clock.at) <= set(seen(browser)["alerts"]), 5)
+            in_page = wait_until(
+                lambda: set(clock.at) <= set(seen(browser)["alerts"]), ALERT_REACHES_PAGE_S
+            )
             assert in_page, (clock.at, seen(browser)["alerts"], sorted(seen(browser)["nir"])[-3:])
         browser.save_screenshot(str(ARTIFACTS / "dashboard_after_replay.png"))
         shown = seen(browser)["alerts"]
