@@ -32,24 +32,71 @@ STATE_ENV = "TWIN_STATE_DIR"
 
 
 class OutputLog:
-    """Append-only log of output ids already published (idempotence across restarts)."""
+    """Append-only log of the outputs already published (idempotence across restarts).
 
-    def __init__(self, path: Path) -> None:
+    One line per output: ``id<TAB>channel<TAB>seq<TAB>wall time`` (a line of the id alone, the
+    earlier format, is read too). A restarted service recomputes its outputs and publishes again
+    none of those logged, except the ones logged within ``at_risk_s`` of wall time before the
+    last line: an output is written here right after its publication, when it may still be in
+    the process's send queue, and a SIGKILL then loses it (seen in the live test under load: a
+    logged ``.final`` divert command that no subscriber received). Those are published once
+    more, with the ``seq`` they had, so that every subscriber that drops duplicates by position
+    (``services.bus.StreamOrder``: the services, the recorder) sees one message."""
+
+    def __init__(self, path: Path, at_risk_s: float = 2.0) -> None:
         self.path = path
         path.parent.mkdir(parents=True, exist_ok=True)
         self.done: set[str] = set()
-        if path.exists():
-            # a torn last line (crash mid-write) is ignored: that output is sent again
-            lines = path.read_text().split("\n")
-            self.done = {ln for ln in lines[:-1] if ln}
+        #: output id -> (channel, seq) as logged
+        self.positions: dict[str, tuple[str, int]] = {}
+        #: ids logged in the last ``at_risk_s`` before the previous process stopped
+        self.at_risk: set[str] = set()
+        text = path.read_text() if path.exists() else ""
+        # a torn last line (crash mid-write) is ignored: that output is sent again
+        self._read(text.split("\n")[:-1], at_risk_s)
         self._f = path.open("a")
+        if text and not text.endswith("\n"):
+            self._f.write("\n")  # the next line must not continue the torn one
+
+    def _read(self, lines: list[str], at_risk_s: float) -> None:
+        walls: list[tuple[float, str]] = []
+        for line in lines:
+            if not line:
+                continue
+            parts = line.split("\t")
+            self.done.add(parts[0])
+            if len(parts) == 4:
+                try:
+                    self.positions[parts[0]] = (parts[1], int(parts[2]))
+                    walls.append((float(parts[3]), parts[0]))
+                except ValueError:
+                    continue
+        if walls:
+            last = max(w for w, _ in walls)
+            self.at_risk = {i for w, i in walls if w >= last - at_risk_s}
 
     def __contains__(self, output_id: str) -> bool:
         return output_id in self.done
 
-    def add(self, output_id: str) -> None:
+    def next_seq(self, channel: str) -> int:
+        """The ``seq`` after the largest one logged on ``channel`` (0 if none)."""
+        seqs = [q for c, q in self.positions.values() if c == channel]
+        return max(seqs) + 1 if seqs else 0
+
+    def take_at_risk(self, output_id: str) -> tuple[str, int] | None:
+        """The logged (channel, seq) of an at-risk output to publish once more, or None."""
+        if output_id not in self.at_risk or output_id not in self.positions:
+            return None
+        self.at_risk.discard(output_id)
+        return self.positions[output_id]
+
+    def add(self, output_id: str, channel: str = "", seq: int | None = None) -> None:
         self.done.add(output_id)
-        self._f.write(output_id + "\n")
+        if seq is None:
+            self._f.write(output_id + "\n")
+        else:
+            self.positions[output_id] = (channel, int(seq))
+            self._f.write(f"{output_id}\t{channel}\t{int(seq)}\t{time.time():.6f}\n")
         self._f.flush()
 
     def close(self) -> None:

@@ -125,6 +125,9 @@ class OosService(Service):
         line, b = self.spec.name, self.spec.blender
         self.alert_pub = self.publisher(keys.oos_alert(line), OosAlert, history=True)
         self.divert_pub = self.publisher(keys.divert_command(line), DivertCommand, history=True)
+        # a restarted diverter goes on with the positions of the outputs it had published
+        self.alert_pub.seq = self.log_ids.next_seq("alert")
+        self.divert_pub.seq = self.log_ids.next_seq("divert")
         self.history_subscribe(keys.feeder_flows(line), FeederFlow)
         self.history_subscribe(
             keys.measured_concentration(line, self.spec.sensor.id), MeasuredConcentration
@@ -250,15 +253,27 @@ class OosService(Service):
 
     def emit(self, outs: list[DiverterOutput]) -> None:
         for o in outs:
-            if o.id in self.log_ids:
-                self.counters.inc("suppressed_republish")
-                continue
             pub = self.alert_pub if o.kind == "alert" else self.divert_pub
-            pub.publish(to_message(o, pub.seq))
-            self.log_ids.add(o.id)
+            if o.id in self.log_ids:
+                again = self.log_ids.take_at_risk(o.id)
+                if again is None:
+                    self.counters.inc("suppressed_republish")
+                    continue
+                # logged just before the previous process died: maybe never sent (OutputLog)
+                following = pub.seq
+                pub.publish(to_message(o, again[1]))
+                pub.seq = max(following, again[1] + 1)
+                self.counters.inc("republished_at_risk")
+                continue
+            msg = pub.publish(to_message(o, pub.seq))
+            self.log_ids.add(o.id, o.kind, msg.seq)
             self.counters.inc("alerts" if o.kind == "alert" else "divert_commands")
         if self.core.finished and not self.counters.get("stream_ended"):
             self.counters.inc("stream_ended")  # the replay's end: every decision is out
+
+    def caught_up(self) -> None:
+        # the history is complete: what it held needs no wall-time grace (OosCore)
+        self.emit(self.core.history_complete())
 
     def idle(self) -> None:
         # a stream that went quiet (e.g. no blender) must not hold decisions back forever

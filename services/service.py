@@ -221,6 +221,11 @@ class Service:
     def idle(self) -> None:
         """Called when no message arrived for ``idle_s``."""
 
+    def caught_up(self) -> None:
+        """Called once the catch-up's messages have been admitted (handled, unless
+        ``reorder_s`` holds them), before the service reports ``running``, under the handling
+        lock: what the history held is complete."""
+
     def finish(self) -> None:
         """Called once at shutdown, before the session closes."""
 
@@ -405,6 +410,7 @@ class Service:
             self.counters.inc("caught_up", len(batch))
             for _, key, _, msg in batch:
                 self._admit(key, msg)
+            self.caught_up()
             self._freeze_heap()
             self._direct = True
             self.state = "running"

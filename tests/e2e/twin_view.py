@@ -3,6 +3,7 @@ health of each service (as the operator sees them), and process checks."""
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -34,6 +35,9 @@ class Seen:
     def __init__(self, sup: Supervisor) -> None:
         self.got: dict[type, list] = {OosAlert: [], DivertCommand: []}
         self.health: dict[str, ServiceHealth] = {}
+        self.positions: set[tuple[str, float, int]] = set()
+        self.resent = 0
+        self._lock = threading.Lock()
         self.session = open_session(sup.client_config("operator"))
         line = sup.spec.name
         # alerts and divert commands through advanced subscribers: one published while the
@@ -51,7 +55,17 @@ class Seen:
 
     def _feed(self, model):
         def sink(key: str, payload: bytes) -> None:
-            self.got[model].append(model.model_validate_json(payload))
+            msg = model.model_validate_json(payload)
+            with self._lock:
+                new = (key, msg.t, msg.seq) not in self.positions
+                self.positions.add((key, msg.t, msg.seq))
+            if not new:
+                # the same message again: a restarted diverter re-sends what it logged just
+                # before it died (services.common.OutputLog); dropped as the contract's
+                # subscribers drop a duplicate position (services.bus.StreamOrder), counted
+                self.resent += 1
+                return
+            self.got[model].append(msg)
 
         return sink
 

@@ -374,6 +374,12 @@ class InletStream:
             out.append(self._release_oldest())
         return out
 
+    def waive_grace(self) -> None:
+        """The ticks held now need no more wall time: their samples came from history that is
+        complete (a start or restart's catch-up), not from a live stream a missed sample may
+        still be recovered into. They wait for ``hold_s`` of plant time only."""
+        self._held = deque((t, row, -math.inf) for t, row, _ in self._held)
+
     def release_all(self) -> list[InletTick]:
         """Release every held tick (end of stream, or the input went quiet)."""
         return [self._release_oldest() for _ in range(len(self._held))]

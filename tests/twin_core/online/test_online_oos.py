@@ -179,6 +179,46 @@ def test_a_late_tracer_event_counts_in_its_own_tick():
     assert decide(120.0) != ref  # past both holds the pulse is moved to a later tick
 
 
+def test_history_needs_no_wall_grace_after_the_catch_up():
+    """A restarted diverter rebuilds its inlet ticks from history at once; the wall-time grace
+    meant for live samples (here unbounded) held its first decisions back. Once the history is
+    complete (``OosCore.history_complete``) the same decisions come out, and the outputs of the
+    whole run equal those of a core without grace (plant time decides, not the wall clock)."""
+    spec = spec_with(services=["oos"])
+    msgs = run_messages(tracer_run(spec), spec)
+
+    def feed(core: OosCore, part: list) -> list:
+        outs = []
+        for k, m in part:
+            if isinstance(m, Event) and m.kind == "tracer_pulse":
+                core.tracer_pulse("api", m.t, m.mass_kg, m.duration_s)
+            elif isinstance(m, FeederFlow):
+                outs += core.flow(keys.parse_key(k).id, m.t, m.mass_flow_kg_h)
+            elif isinstance(m, MeasuredConcentration):
+                outs += core.measured("api", m.t, m.concentration_pct_w_w)
+            outs += core.release_inlet()
+        return outs
+
+    def ids(outs: list) -> list:
+        return [(o.kind, o.id, o.t, o.t_start, o.t_end) for o in outs]
+
+    plain = OosCore(spec)
+    ref = ids(feed(plain, msgs) + plain.end_of_stream())
+    history = [(k, m) for k, m in msgs if m.t <= 400.0]  # the pulse's alert is due by then
+    live = [(k, m) for k, m in msgs if m.t > 400.0]
+    held = OosCore(spec)
+    held.inlet_grace_s = 1e9
+    before = feed(held, history)
+    assert not [o for o in ids(before) if o[0] == "alert"]  # held by the grace
+    caught_up = held.history_complete()
+    assert [o[1] for o in ids(before + caught_up) if o[0] == "alert"] == [
+        "line1.api.feed-000000300000"
+    ]
+    held.inlet_grace_s = 0.0  # the live part: nothing more to wait for in this test
+    after = feed(held, live) + held.end_of_stream()
+    assert ids(before + caught_up + after) == ref
+
+
 def test_the_diverter_follows_the_rtd_the_blender_adopted():
     """An adopted RTD estimate (a slower blender) moves the traced window to the estimate's lot
     boundaries and the funnel gain to the estimate's (twin_core.quality: diversion_window,
