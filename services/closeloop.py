@@ -37,7 +37,7 @@ from schemas import keys
 from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import AdoptionProgress, Event, FeederFlow, MeasuredConcentration
-from services.common import OutputLog, ProgressReport
+from services.common import OutputLog, ProgressReport, publish_once
 from services.service import Service
 from twin_core.closeloop.online import OnlineCloseLoop, WindowData
 from twin_core.closeloop.report import Finding
@@ -109,6 +109,7 @@ class CloseLoopService(Service):
     def setup(self) -> None:
         line = self.spec.name
         self.pub = self.publisher(keys.model_finding(line), ModelFinding, history=True)
+        self.pub.seq = self.log_ids.next_seq("finding")
         self.progress.pub = self.publisher(
             keys.adoption_progress(line, "closeloop"), AdoptionProgress, history=True
         )
@@ -162,11 +163,16 @@ class CloseLoopService(Service):
         self.counters.inc("windows_checked")
         self.counters.inc(f"status_{f.status}")
         fid = finding_id(self.spec.name, f.t_end_s)
-        if fid in self.log_ids:
-            self.counters.inc("suppressed_republish")
+        msg = publish_once(
+            self.log_ids,
+            self.pub,
+            fid,
+            "finding",
+            lambda seq: to_message(f, self.spec.name, seq, applies_from_s),
+            self.counters,
+        )
+        if msg is None:
             return
-        msg = self.pub.publish(to_message(f, self.spec.name, self.pub.seq, applies_from_s))
-        self.log_ids.add(fid)
         self.progress.updated(msg.t)
         if f.status in ("explained", "partly_explained"):
             log.info(

@@ -11,6 +11,7 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -37,11 +38,15 @@ class OutputLog:
     One line per output: ``id<TAB>channel<TAB>seq<TAB>wall time`` (a line of the id alone, the
     earlier format, is read too). A restarted service recomputes its outputs and publishes again
     none of those logged, except the ones logged within ``at_risk_s`` of wall time before the
-    last line: an output is written here right after its publication, when it may still be in
-    the process's send queue, and a SIGKILL then loses it (seen in the live test under load: a
+    last line when the process did not stop cleanly (no closing line): an output is written here
+    right after its publication, when it may still be in the process's send queue, and a SIGKILL
+    then loses it (seen in the live test under load: a
     logged ``.final`` divert command that no subscriber received). Those are published once
     more, with the ``seq`` they had, so that every subscriber that drops duplicates by position
     (``services.bus.StreamOrder``: the services, the recorder) sees one message."""
+
+    #: the line a clean stop writes (:meth:`close`)
+    CLOSED = "#closed"
 
     def __init__(self, path: Path, at_risk_s: float = 2.0) -> None:
         self.path = path
@@ -61,6 +66,9 @@ class OutputLog:
     def _read(self, lines: list[str], at_risk_s: float) -> None:
         walls: list[tuple[float, str]] = []
         for line in lines:
+            if line == self.CLOSED:  # a clean stop: what came before it was sent
+                walls.clear()
+                continue
             if not line:
                 continue
             parts = line.split("\t")
@@ -100,7 +108,36 @@ class OutputLog:
         self._f.flush()
 
     def close(self) -> None:
+        """Close after a clean stop: nothing the process published is at risk any more."""
+        self._f.write(self.CLOSED + "\n")
         self._f.close()
+
+
+def publish_once(
+    log: OutputLog,
+    pub: Any,
+    output_id: str,
+    channel: str,
+    make: Callable[[int], Any],
+    counters: Any,
+) -> Any | None:
+    """Publish the output ``make(seq)`` on ``pub`` and log it, unless the log has it (a
+    restarted service recomputing what it had published: counted in ``suppressed_republish``).
+    One the log holds as at risk (:class:`OutputLog`) is published once more with the ``seq``
+    it was logged with (``republished_at_risk``). Returns the message when it is new."""
+    if output_id in log:
+        again = log.take_at_risk(output_id)
+        if again is None:
+            counters.inc("suppressed_republish")
+            return None
+        following = pub.seq
+        pub.publish(make(again[1]))
+        pub.seq = max(following, again[1] + 1)
+        counters.inc("republished_at_risk")
+        return None
+    msg = pub.publish(make(pub.seq))
+    log.add(output_id, channel, msg.seq)
+    return msg
 
 
 class TickMark:

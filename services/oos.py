@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import logging
 import math
+from functools import partial
 from typing import Any
 
 from schemas import keys
@@ -64,6 +65,7 @@ from services.common import (
     ProducerProgress,
     applies_from,
     follow_operating_point,
+    publish_once,
     record_late,
 )
 from services.service import Service
@@ -254,20 +256,11 @@ class OosService(Service):
     def emit(self, outs: list[DiverterOutput]) -> None:
         for o in outs:
             pub = self.alert_pub if o.kind == "alert" else self.divert_pub
-            if o.id in self.log_ids:
-                again = self.log_ids.take_at_risk(o.id)
-                if again is None:
-                    self.counters.inc("suppressed_republish")
-                    continue
-                # logged just before the previous process died: maybe never sent (OutputLog)
-                following = pub.seq
-                pub.publish(to_message(o, again[1]))
-                pub.seq = max(following, again[1] + 1)
-                self.counters.inc("republished_at_risk")
-                continue
-            msg = pub.publish(to_message(o, pub.seq))
-            self.log_ids.add(o.id, o.kind, msg.seq)
-            self.counters.inc("alerts" if o.kind == "alert" else "divert_commands")
+            sent = publish_once(
+                self.log_ids, pub, o.id, o.kind, partial(to_message, o), self.counters
+            )
+            if sent is not None:
+                self.counters.inc("alerts" if o.kind == "alert" else "divert_commands")
         if self.core.finished and not self.counters.get("stream_ended"):
             self.counters.inc("stream_ended")  # the replay's end: every decision is out
 

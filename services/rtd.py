@@ -39,7 +39,7 @@ from schemas.messages import (
     RtdEstimate,
     RtdSkipped,
 )
-from services.common import OutputLog, ProgressReport
+from services.common import OutputLog, ProgressReport, publish_once
 from services.service import Service
 from twin_core.online.inlet import event_record
 from twin_core.online.rtd import PulseOutcome, RtdCore
@@ -70,6 +70,8 @@ class RtdService(Service):
         line = self.spec.name
         self.pub = self.publisher(keys.rtd_estimate(line), RtdEstimate, history=True)
         self.skipped_pub = self.publisher(keys.rtd_skipped(line), RtdSkipped, history=True)
+        self.pub.seq = self.log_ids.next_seq("estimate")
+        self.skipped_pub.seq = self.log_ids.next_seq("skipped")
         self.progress.pub = self.publisher(
             keys.adoption_progress(line, "rtd"), AdoptionProgress, history=True
         )
@@ -99,49 +101,50 @@ class RtdService(Service):
     def publish_outcome(self, o: PulseOutcome, t_data: float) -> None:
         """The estimate of a fitted pulse (applying from ``t_data``, the plant time of the sample
         that completed it, plus ``blender.adoption_delay_s``), or why a pulse gave none (once
-        per pulse)."""
+        per pulse: ``services.common.publish_once``)."""
         oid = outcome_id(self.spec.name, o.segment.t0)
-        if oid in self.log_ids:
-            self.counters.inc("suppressed_republish")
-            return
         t = float(o.segment.t[-1])
-        if o.kind == "skipped_disturbance":
-            self.counters.inc("pulses_skipped_disturbance")
+        if o.kind == "skipped_disturbance" or o.result is None:
+            reason = "skipped_disturbance" if o.kind == "skipped_disturbance" else "fit_failed"
             detail = (
                 f"pulse found by itself at {o.segment.t0:.1f} s while a known disturbance or "
                 "refill could reach the outlet: not a tracer experiment"
+                if reason == "skipped_disturbance"
+                else o.error
             )
-            self._skip(t, o, "skipped_disturbance", detail)
-        elif o.result is None:
-            self.counters.inc("fit_failed")
-            self.counters.last_error = o.error
-            log.warning("%s", o.error)
-            self._skip(t, o, "fit_failed", o.error)
-        else:
-            r = o.result
-            self.pub.publish(
-                RtdEstimate(
-                    t=t,
-                    seq=self.pub.seq,
-                    model=r.model,
-                    params=r.params,
-                    stderr=r.stderr,
-                    mean_residence_time_s=r.mean_residence_time_s,
-                    pulse_t_s=r.pulse_t_s,
-                    n_points=r.n_points,
-                    rmse=r.rmse,
-                    applies_from_s=t_data + self.spec.blender.adoption_delay_s,
+
+            def skipped(seq: int) -> RtdSkipped:
+                return RtdSkipped(
+                    t=t, seq=seq, pulse_t_s=o.segment.t0, reason=reason, detail=detail
                 )
+
+            if publish_once(self.log_ids, self.skipped_pub, oid, "skipped", skipped, self.counters):
+                self.counters.inc(
+                    "pulses_skipped_disturbance" if reason == "skipped_disturbance" else reason
+                )
+                if reason == "fit_failed":
+                    self.counters.last_error = o.error
+                    log.warning("%s", o.error)
+            return
+        r = o.result
+
+        def estimate(seq: int) -> RtdEstimate:
+            return RtdEstimate(
+                t=t,
+                seq=seq,
+                model=r.model,
+                params=r.params,
+                stderr=r.stderr,
+                mean_residence_time_s=r.mean_residence_time_s,
+                pulse_t_s=r.pulse_t_s,
+                n_points=r.n_points,
+                rmse=r.rmse,
+                applies_from_s=t_data + self.spec.blender.adoption_delay_s,
             )
+
+        if publish_once(self.log_ids, self.pub, oid, "estimate", estimate, self.counters):
             self.counters.inc("estimates")
             self.progress.updated(t)
-        self.log_ids.add(oid)
-
-    def _skip(self, t: float, o: PulseOutcome, reason: str, detail: str) -> None:
-        pub = self.skipped_pub
-        pub.publish(
-            RtdSkipped(t=t, seq=pub.seq, pulse_t_s=o.segment.t0, reason=reason, detail=detail)
-        )
 
     def finish(self) -> None:
         self.progress.flush()

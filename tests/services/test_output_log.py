@@ -37,9 +37,9 @@ def test_the_earlier_format_and_a_torn_line_are_read(tmp_path):
     log = OutputLog(path)
     assert log.done == {"a.open", "a"} and "a.fin" not in log
     assert log.at_risk == set() and log.next_seq("divert") == 0
-    log.add("a.final", "divert", 7)
-    log.close()
+    log.add("a.final", "divert", 7)  # then the process dies: no closing line
     again = OutputLog(path)
     assert "a.final" in again and again.positions["a.final"] == ("divert", 7)
     assert again.at_risk == {"a.final"}
     again.close()
+    assert OutputLog(path).at_risk == set()  # closed after a clean stop: nothing at risk

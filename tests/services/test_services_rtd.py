@@ -23,8 +23,10 @@ class Pub:
     def __init__(self) -> None:
         self.sent: list[RtdEstimate] = []
 
-    def publish(self, msg: RtdEstimate) -> None:
+    def publish(self, msg: RtdEstimate) -> RtdEstimate:
         self.sent.append(msg)
+        self.seq = msg.seq + 1
+        return msg
 
 
 def test_rtd_service_fits_the_announced_pulse_and_skips_a_feeder_disturbance(tmp_path):
