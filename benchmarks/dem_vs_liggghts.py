@@ -10,8 +10,21 @@ serial scatter on one thread; ``two_pass`` is the parallel buffer-and-gather sch
 alternate (LIGGGHTS, ours, LIGGGHTS, ours...) so that the load of the shared machine hits both
 alike. Needs the ``liggghts`` executable (Debian package ``liggghts``).
 
-    python benchmarks/dem_vs_liggghts.py [--n 6000] [--case bed|drum] [--repeat 2]
-        [--threads 1] [--schemes auto two_pass]
+``--case blender``: the seed-size blender section (``twin_core/scenes/configs/blender.yaml``, or
+``--scene blender_small``; 2 x 3,000 spheres, trough and rotor meshes, blades at ``--rpm``,
+default the scene's fastest) with the scene's materials (steel walls as LIGGGHTS atom type 2,
+the particle-wall pair coefficients), Tsuji damping, dt and skin. Our engine settles it with the
+plate (``settle_s``) and turns the blades for ``--spin`` s (not timed; the checkpoint is kept in
+``--state-dir``); both codes then start from that state (LIGGGHTS: ``liggghts/in.blender`` with
+the particles, their velocities and spins as a data file, the meshes as ASCII STL at the current
+blade angle, ``move/mesh`` with the same axis and period), run ``--warm`` untimed steps and
+``--steps`` timed ones. Each run reports, besides its rate, the mean translational kinetic
+energy over the timed steps (sampled every ``--thermo`` steps), the mean speed at the end and
+the particles that left the section through a wall (lost, or centre beyond the trough).
+
+    python benchmarks/dem_vs_liggghts.py [--n 6000] [--case bed|drum|blender] [--repeat 2]
+        [--threads 1] [--schemes auto two_pass] [--steps 2000]
+        [--scene blender] [--rpm 100] [--spin 0.2] [--warm 100] [--thermo 500]
 """
 
 from __future__ import annotations
@@ -39,7 +52,7 @@ import dem_throughput as bench  # noqa: E402
 from schemas.dem_scene import BlenderScene, load_scene  # noqa: E402
 from twin_core.dem import Simulation  # noqa: E402
 from twin_core.dem.stl import write_stl  # noqa: E402
-from twin_core.scenes import blender  # noqa: E402
+from twin_core.scenes import blender, common  # noqa: E402
 from twin_core.scenes.geometry import SceneGeometry  # noqa: E402
 from twin_core.scenes.presets import PRESETS  # noqa: E402
 
@@ -136,6 +149,34 @@ def blender_state(cfg: BlenderScene, rpm: float, spin_s: float, cache: Path) -> 
               f"{time.perf_counter() - t0:.0f} s (not timed) -> {path}", flush=True)  # fmt: skip
         sim.save_checkpoint(path)
     return path
+
+
+def check_state(sim: Any, cfg: BlenderScene, geo: SceneGeometry, rpm: float) -> None:
+    """Raise ValueError unless the checkpointed ``sim`` is this scene's section at ``rpm``:
+    particle count, time step, mesh triangle counts, blade speed, after the plate's removal."""
+    n_static = len(geo.static)
+    expected = {
+        "particles": 2 * cfg.n_per_type,
+        "dt": cfg.dt_fraction
+        * common.rayleigh_dt(
+            cfg.radius, cfg.material.density, cfg.material.shear_modulus, cfg.material.poisson
+        ),
+        "triangles": [len(m.triangles) for m in geo.static] + [len(geo.rotating[0][0].triangles)],
+        "rpm": rpm,
+    }
+    got = {
+        "particles": sim.n_particles + sim.removed_counts["lost"][0],
+        "dt": sim.dt,
+        "triangles": [len(sim.mesh_triangles(k)) for k in range(n_static + 1)],
+        "rpm": sim.mesh_motion(n_static).rpm,
+    }
+    for key, want in expected.items():
+        same = np.isclose(got[key], want, rtol=1e-9) if key == "dt" else got[key] == want
+        if not same:
+            raise ValueError(f"state: {key} must be {want} for {cfg.name} at {rpm:g} rpm, "
+                             f"got {got[key]}")  # fmt: skip
+    if sim.t < cfg.settle_s:
+        raise ValueError(f"state: t must be >= settle_s = {cfg.settle_s} s, got {sim.t:.3f} s")
 
 
 def outside_section(pos: np.ndarray, geo: SceneGeometry) -> np.ndarray:
@@ -288,8 +329,12 @@ def blender_main(args: argparse.Namespace) -> int:
     cfg = blender_config(args.scene)
     rpm = args.rpm if args.rpm is not None else max(cfg.rpms)
     geo = blender.build_geometry(cfg, rpm)
-    state = blender_state(cfg, rpm, args.spin, Path(args.state_dir))
+    if args.state is not None:
+        state = Path(args.state)
+    else:
+        state = blender_state(cfg, rpm, args.spin, Path(args.state_dir))
     sim = Simulation.load_checkpoint(state)
+    check_state(sim, cfg, geo, rpm)
     print(f"blender {cfg.name}: N = {sim.n_particles}, {rpm:g} rpm, t0 = {sim.t:.3f} s, "
           f"dt = {sim.dt:.4e} s, skin = {sim.skin:.2e} m; {args.warm} untimed + "
           f"{args.steps} timed steps", flush=True)  # fmt: skip
@@ -350,6 +395,12 @@ def main(argv: list[str] | None = None) -> int:
         "--state-dir",
         default=str(Path(tempfile.gettempdir()) / "dem_vs_liggghts"),
         help="blender case: where the settled state is kept between invocations",
+    )
+    ap.add_argument(
+        "--state",
+        default=None,
+        help="blender case: start from this checkpoint of the scene's run at --rpm (e.g. a "
+        "'twin dem run' checkpoint.npz) instead of settling one",
     )
     args = ap.parse_args(argv)
     if shutil.which(args.liggghts) is None:

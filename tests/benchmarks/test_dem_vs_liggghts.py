@@ -74,6 +74,10 @@ def test_blender_inputs_hold_our_particles_meshes_and_materials(bench, tmp_path)
         np.testing.assert_allclose(v[t], ours, rtol=0, atol=1e-10)
 
     m = cfg.material
+    # Rayleigh time pi R sqrt(rho / G) / (0.1631 nu + 0.8766) (seed Eq. 9 corrected)
+    rayleigh = (
+        np.pi * cfg.radius * np.sqrt(m.density / m.shear_modulus) / (0.1631 * m.poisson + 0.8766)
+    )
     expected = {
         "ym1": 2 * m.shear_modulus * (1 + m.poisson),
         "ym2": 2 * m.wall_shear_modulus * (1 + m.wall_poisson),
@@ -81,7 +85,7 @@ def test_blender_inputs_hold_our_particles_meshes_and_materials(bench, tmp_path)
         "e_pp": m.pp_restitution, "e_pw": m.pw_restitution,
         "mu_pp": m.pp_friction, "mu_pw": m.pw_friction,
         "mur_pp": m.pp_rolling_friction, "mur_pw": m.pw_rolling_friction,
-        "dt": sim.dt, "skin": sim.skin if sim.skin is not None else 0.5 * cfg.radius,
+        "dt": cfg.dt_fraction * rayleigh, "skin": 0.5 * cfg.radius,
         "ox": 0.0, "oy": 0.0, "oz": cfg.geometry.width / 2,
         "ax": 1.0, "ay": 0.0, "az": 0.0, "period": 60.0 / rpm,
     }  # fmt: skip
@@ -89,6 +93,15 @@ def test_blender_inputs_hold_our_particles_meshes_and_materials(bench, tmp_path)
     assert got == pytest.approx(expected, rel=1e-12, abs=1e-15)
     used = set(re.findall(r"\$\{(\w+)\}", (BENCH.parent / "liggghts" / "in.blender").read_text()))
     assert used == set(values)
+
+
+def test_state_of_another_speed_or_before_the_plate_removal_is_refused(bench):
+    cfg = bench.blender_config("blender_small")
+    sim, geo = blender.build(cfg, 100.0)
+    with pytest.raises(ValueError, match="rpm must be 50"):
+        bench.check_state(sim, cfg, blender.build_geometry(cfg, 50.0), 50.0)
+    with pytest.raises(ValueError, match="t must be >= settle_s"):
+        bench.check_state(sim, cfg, geo, 100.0)
 
 
 def test_outside_section_counts_centres_beyond_the_trough(bench):
