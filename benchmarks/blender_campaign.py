@@ -49,13 +49,15 @@ LINE_POINT = (100.0, 12.0)
 
 def run_speed(params: dict[str, float], seed: int, scene: str = "", runs: str = "") -> dict:
     """One blade speed of the campaign (resumes from its checkpoint)."""
+    from twin_core.dem.threads import adaptive_threads
     from twin_core.scenes import blender
 
     cfg = load_scene(scene)
     rpm = float(params["rpm"])
     run_dir = Path(runs) / f"rpm_{rpm:g}"
     resume = (run_dir / "checkpoint.npz").exists()
-    res = blender.run(cfg, rpm, run_dir, resume=resume, progress=True)
+    with adaptive_threads():  # two threads on a loaded machine run at a quarter of one
+        res = blender.run(cfg, rpm, run_dir, resume=resume, progress=True)
     return {
         "net_axial_flow_kg_s": res["net_axial_flow_kg_s"],
         "transit_count": res["transit_count"],

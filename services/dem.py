@@ -223,7 +223,15 @@ class DemService(Service):
             self._pub(req.job_id, "result", DemJobResult).publish(result)
 
     def run_job(self, req: DemJobRequest) -> tuple[dict[str, str], dict[str, float]]:
-        """Run one job (see the module docstring); return (outputs, metrics)."""
+        """Run one job (see the module docstring); return (outputs, metrics). The engine
+        chooses its thread count at run time (``twin_core.dem.threads``): the service shares
+        its machine with the rest of the twin, where two threads can run at a quarter of one."""
+        from twin_core.dem.threads import adaptive_threads
+
+        with adaptive_threads():
+            return self._run_job(req)
+
+    def _run_job(self, req: DemJobRequest) -> tuple[dict[str, str], dict[str, float]]:
         from schemas.dem_scene import load_scene
 
         params = dict(req.params)
