@@ -45,7 +45,12 @@ from twin_core.quality.lots import quantile_time
 from twin_core.rtd import virtual as V
 from twin_core.rtd.denoise import denoise
 from twin_core.rtd.fitting import fit
-from twin_core.rtd.likelihood import LACK_OF_FIT_ALPHA, NoiseModel, fit_candidates, fit_raw
+from twin_core.rtd.likelihood import (
+    NoiseModel,
+    fit_candidates,
+    fit_raw,
+    lack_of_fit_levels,
+)
 from twin_core.rtd.models import MODELS, get_model
 from twin_core.rtd.outliers import hampel
 from twin_core.rtd.pipeline import Preprocessing, fit_profile
@@ -257,7 +262,7 @@ def exchange_noncentrality(truth: Truth, noise: str) -> float:
 
 def noncentrality_table() -> str:
     """Markdown table: the stagnant-zone truths' noncentrality and the power it allows."""
-    level = LACK_OF_FIT_ALPHA / 2
+    level = lack_of_fit_levels(["shape", "exchange"])["exchange"]
     z = float(stats.norm.isf(level))
     lines = [
         "| truth | noise | delta | sqrt(delta) | power bound at one-sided "
@@ -283,7 +288,7 @@ def selection_task(task: tuple[str, str, int]) -> dict:
     truth = next(x for x in TRUTHS if x.name == name)
     c, _ = _truth_data(truth)
     y, _ = V.measure(c, NOISE[noise], _rng(name, noise, 10_000 + i))
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     r = fit_candidates(T, y, list(MODELS))
     best = r.best
     return {
@@ -297,6 +302,8 @@ def selection_task(task: tuple[str, str, int]) -> dict:
             w for f, w in zip(r.fits, r.weights) if f.model == (truth.family or "ad_open_dead")
         ),
         "max_candidate_s": max(f.seconds for f in r.fits),
+        "candidate_s": {f.model: f.seconds for f in r.fits},
+        "cpu_seconds": time.process_time() - c0,
         "failed": r.failed,
         "seconds": time.perf_counter() - t0,
     }
@@ -377,6 +384,16 @@ def coverage_tables(rows: list[dict]) -> str:
     return "\n".join(lines + tail)
 
 
+def _ad_flagged(row: dict) -> bool:
+    """AD flagged inadequate: a test's p-value below its current level (rows keep the
+    p-values, so a rerun scores them at the levels of the code), else the stored verdict."""
+    tests = row.get("ad_tests")
+    if not tests:
+        return not row["ad_adequate"]
+    levels = lack_of_fit_levels(list(tests))
+    return any(v[1] < levels[k] for k, v in tests.items())
+
+
 def adequacy_tables(rows: list[dict]) -> str:
     """Markdown table: share of profiles whose AD fit is flagged inadequate (binomial sd),
     by each test, and the AD mean residence time error; pure AD pooled per noise setting."""
@@ -393,14 +410,13 @@ def adequacy_tables(rows: list[dict]) -> str:
             if not sub:
                 continue
             tests = [r.get("ad_tests", {}) for r in sub]
-            alpha = LACK_OF_FIT_ALPHA / max([len(x) for x in tests] + [1])
             by_test = {
-                k: _pct([x[k][1] < alpha for x in tests if k in x])
+                k: _pct([x[k][1] < lack_of_fit_levels(list(x))[k] for x in tests if k in x])
                 for k in ("shape", "exchange", "tail")
             }
             lines.append(
                 f"| {label} | {noise} | {len(sub)} | "
-                f"{_pct_sd([not r['ad_adequate'] for r in sub])} | {by_test['shape']} | "
+                f"{_pct_sd([_ad_flagged(r) for r in sub])} | {by_test['shape']} | "
                 f"{by_test['exchange'] if by_test['exchange'] != '-' else by_test['tail']} | "
                 f"{_pct([x['exchange'][1] < 0.05 for x in tests if 'exchange' in x])} | "
                 f"{np.median([r['ad_mrt_error_pct'] for r in sub]):+.1f} | "
@@ -410,11 +426,13 @@ def adequacy_tables(rows: list[dict]) -> str:
 
 
 def selection_tables(rows: list[dict]) -> str:
-    """Markdown table: what BIC selects per truth and noise."""
+    """Markdown table: what BIC selects per truth and noise; the wall time of a candidate
+    (median over candidates and profiles, and the slowest) and the failed candidates."""
     lines = [
-        "| truth | noise | n | generating family selected % | more parameters than the truth % | "
-        "median weight of the family | slowest candidate (s, max) | failed candidates |",
-        "|---|---|---|---|---|---|---|---|",
+        "| truth | noise | n | generating family selected % | an AD model (ad_open / ad_closed) "
+        "% | more parameters than the truth % | median weight of the family | candidate wall "
+        "s, median / max | failed candidates |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     true_k = {"ad_open": 3, "tis": 3, "emg": 3, "ad_open_dead": 5}
     for name in SELECTION:
@@ -424,12 +442,21 @@ def selection_tables(rows: list[dict]) -> str:
                 continue
             fam = sub[0]["family"]
             fails = sum(len(r["failed"]) for r in sub)
+            each = [s for r in sub for s in r.get("candidate_s", {}).values()]
+            med = f"{np.median(each):.1f}" if each else "-"
             lines.append(
                 f"| {name} | {noise} | {len(sub)} | {_pct([r['selected'] == fam for r in sub])} | "
+                f"{_pct([r['selected'] in ('ad_open', 'ad_closed') for r in sub])} | "
                 f"{_pct([r['selected_k'] > true_k[fam] for r in sub])} | "
                 f"{np.median([r['family_weight'] for r in sub]):.2f} | "
-                f"{max(r['max_candidate_s'] for r in sub):.1f} | {fails} |"
+                f"{med} / {max(r['max_candidate_s'] for r in sub):.1f} | {fails} |"
             )
+    cpu = [r["cpu_seconds"] for r in rows if "cpu_seconds" in r]
+    if cpu:
+        lines.append(
+            f"\nCPU time per profile (all candidates): median {np.median(cpu):.1f} s, max "
+            f"{max(cpu):.1f} s ({len(cpu)} profiles)"
+        )
     return "\n".join(lines)
 
 
@@ -457,9 +484,10 @@ def main(argv: list[str] | None = None) -> None:
         print(adequacy_tables(rows))
         print(noncentrality_table())
         return
-    rows = _run(args.out / "coverage.jsonl", tasks, coverage_task, args.jobs, "coverage")
-    print(coverage_tables(rows))
-    print(adequacy_tables(rows))
+    if tasks:  # --profiles 0: the selection table alone
+        rows = _run(args.out / "coverage.jsonl", tasks, coverage_task, args.jobs, "coverage")
+        print(coverage_tables(rows))
+        print(adequacy_tables(rows))
     sel = [(t, n, i) for i in range(args.selection) for t in SELECTION for n in NOISE]
     srows = _run(args.out / "selection.jsonl", sel, selection_task, args.jobs, "selection")
     print(selection_tables(srows))

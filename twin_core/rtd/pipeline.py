@@ -230,7 +230,8 @@ def _fit_baseline(mode: str | float) -> float | None:
 
 def inadequacy_warning(fit: RawFit) -> str:
     """The warning for a fit the lack-of-fit test rejects."""
-    worst = min(fit.lack_of_fit.tests, key=lambda x: x.p_value)
+    levels = fit.lack_of_fit.levels
+    worst = min(fit.lack_of_fit.tests, key=lambda x: x.p_value / levels[x.name])
     return (
         f"model {fit.model} does not fit the profile: lack-of-fit p = "
         f"{fit.lack_of_fit.p_value:.2g} < {fit.lack_of_fit.alpha:g} (largest deviation: "
