@@ -15,7 +15,6 @@ Run: ``python benchmarks/bus_floor.py [--seconds 60] [--rate-hz 10]``
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -32,16 +31,12 @@ STAGES = {"blender": ("floor/plant", "floor/blender"), "oos": ("floor/blender", 
 PAYLOAD = 200
 
 
-def _config(mode: str, listen: list[str], connect: list[str]):
-    import zenoh
+def _session(mode: str, listen: list[str], connect: list[str]):
+    """A zenoh session of the twin's own configuration (``services.bus.open_session``)."""
+    from schemas.bus_config import BusConfig
+    from services.bus import open_session
 
-    cfg = {
-        "mode": mode,
-        "listen": {"endpoints": listen},
-        "connect": {"endpoints": connect},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-    }
-    return zenoh.Config.from_json5(json.dumps(cfg))
+    return open_session(BusConfig(mode=mode, listen=listen, connect=connect))
 
 
 def serve_node(role: str, locator: str) -> None:
@@ -49,9 +44,9 @@ def serve_node(role: str, locator: str) -> None:
     import zenoh
 
     if role == "router":
-        session = zenoh.open(_config("router", [locator], []))
+        session = _session("router", [locator], [])
     else:
-        session = zenoh.open(_config("client", [], [locator]))
+        session = _session("client", [], [locator])
         src, dst = STAGES[role]
         pub = session.declare_publisher(dst, express=True)
         session.declare_subscriber(
@@ -74,7 +69,7 @@ def measure(seconds: float = 60.0, rate_hz: float = 10.0) -> np.ndarray:
     try:
         time.sleep(1.0)
         procs += [subprocess.Popen([*me, role, locator]) for role in STAGES]
-        session = zenoh.open(_config("client", [], [locator]))
+        session = _session("client", [], [locator])
         recv: dict[int, float] = {}
 
         def on_back(sample: zenoh.Sample) -> None:
