@@ -11,8 +11,8 @@ Before each drift the Verlet skin criterion (:func:`twin_core.dem.partition.rebu
 decides whether the lists are rebuilt; the displacement that the next drift will give each
 particle is predicted at the end of the previous step (fused into ``gather_pass``), together
 with its removal code when the drift takes it out of the domain or into a sink. The pair forces
-come from one of the two schemes of :mod:`twin_core.dem.pairs` (the serial scatter on one
-thread, the two-pass scheme otherwise; bit-identical).
+come from one of the two schemes of :mod:`twin_core.dem.pairs` (the chunked scatter, default,
+or the two-pass scheme; the same sums for any thread count).
 
 References: Verlet (1967), Phys. Rev. 159, 98; Swope, Andersen, Berens & Wilson (1982),
 J. Chem. Phys. 76, 637 (velocity form); Allen & Tildesley, Computer Simulation of Liquids
@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit, prange
 
 from .meshes import add_mesh_contacts, update_mesh
-from .pairs import gather_pair_slots, pair_pass, pair_scatter
+from .pairs import chunk_sums, gather_pair_slots, pair_pass, pair_scatter
 from .partition import rebuild, rebuild_due
 from .space import min_image
 from .walls import add_cylinder_contacts, add_plane_contacts
@@ -126,7 +126,7 @@ def _store_and_kick(i, P, F, grav, dt, fx, fy, fz, tx, ty, tz):
 
 @njit(cache=True, parallel=True)
 def gather_pass(
-    n, P, F, IA, nown, pf, nrev, rev_o, rev_k, use_acc, acc,
+    n, P, F, IA, nown, pf, nrev, rev_o, rev_k, use_acc, acc, bounds,
     planes, cyls, whist,
     ntri, tri_nb, thist, tri_tmp, tri_x, tri_mesh, mesh_par,
     pt, dom, per, grav, dt, t, predict_next, XB, rm, sinks, disp2,
@@ -134,17 +134,17 @@ def gather_pass(
     """Pass 2: total force/torque on each particle (pairs, planes, cylinders, meshes, gravity,
     summed in that order); half kick.
 
-    Pair sums: with ``use_acc`` they are read from ``acc`` (filled by
-    :func:`twin_core.dem.pairs.pair_scatter`); otherwise they are gathered from the slots ``pf``
-    of :func:`twin_core.dem.pairs.pair_pass` in the scatter's order (bit-identical sums).
+    Pair sums: with ``use_acc`` they are added from the chunk buffers ``acc`` (filled by
+    :func:`twin_core.dem.pairs.pair_scatter`, chunk order); otherwise they are gathered from
+    the slots ``pf`` of :func:`twin_core.dem.pairs.pair_pass` in the one-chunk scatter's order
+    (bit-identical sums).
     With ``predict_next`` it also does the work of :func:`predict` for the next step (fused to
     save a parallel region per step). Every particle writes only its own rows.
     """
     npl = planes.shape[0]
     for i in prange(n):
         if use_acc:
-            fx, fy, fz = acc[i, 0], acc[i, 1], acc[i, 2]
-            tx, ty, tz = acc[i, 3], acc[i, 4], acc[i, 5]
+            fx, fy, fz, tx, ty, tz = chunk_sums(i, acc, bounds)
         else:
             fx, fy, fz, tx, ty, tz = gather_pair_slots(i, P[i, 9], pf, nrev, rev_o, rev_k, nown)
         fx, fy, fz, tx, ty, tz = add_plane_contacts(
@@ -164,18 +164,18 @@ def gather_pass(
 
 @njit(cache=True)
 def _forces_and_kick(
-    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, c,
+    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, bounds, c,
     tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
     planes, cyls, pt, dom, per, grav, dt, t, serial, predict_next, XB, rm, sinks, disp2,
 ):  # fmt: skip
     """Forces at time t on the live lists ``c`` and the second half kick: the pair forces by the
-    serial scatter (``serial``) or pass 1, then pass 2 (:func:`gather_pass`)."""
+    chunked scatter (``serial``) or pass 1, then pass 2 (:func:`gather_pass`)."""
     if serial:
-        pair_scatter(n, P, IA, nb_b[c], nown_b[c], hist_b[c], acc, pt, dom, per, dt)
+        pair_scatter(n, P, IA, nb_b[c], nown_b[c], hist_b[c], acc, bounds, pt, dom, per, dt)
     else:
         pair_pass(n, P, F, IA, nb_b[c], nown_b[c], hist_b[c], pf, pt, dom, per, dt)
     gather_pass(
-        n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc,
+        n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc, bounds,
         planes, cyls, whist,
         ntri_b[c], tri_nb_b[c], thist_b[c], tri_tmp, tri_x, tri_mesh, mesh_par,
         pt, dom, per, grav, dt, t, predict_next, XB, rm, sinks, disp2,
@@ -185,7 +185,7 @@ def _forces_and_kick(
 @njit(cache=True)
 def advance(
     nsteps, step0, dt, n, P, F, IA, XB, rm, disp2, whist,
-    nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, cur,
+    nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, bounds, cur,
     tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x0, tri_x, tri_xb, tri_mesh, mesh_par, any_moving,
     planes, cyls, sinks, pt, dom, per, grav, skin, rmax, removed, counters, serial,
 ):  # fmt: skip
@@ -193,8 +193,8 @@ def advance(
 
     Each step: (1) predict the drift; rebuild the lists first if the skin criterion asks for it
     (:func:`twin_core.dem.partition.rebuild_due`); (2) half kick + drift; (3) move meshes;
-    (4) pass 1 and pass 2 forces + half kick (``serial``, for one thread:
-    :func:`twin_core.dem.pairs.pair_scatter` instead of pass 1, bit-identical). Returns (status,
+    (4) pass 1 and pass 2 forces + half kick (``serial``:
+    :func:`twin_core.dem.pairs.pair_scatter`, chunked, instead of pass 1). Returns (status,
     steps_done, n); status != 0 means a list must be enlarged (``counters[2]`` holds the needed
     size) before calling again.
     """
@@ -222,7 +222,7 @@ def advance(
                 update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
         kick_drift(n, P, F, dom, per, dt)
         _forces_and_kick(
-            n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, cur[0],
+            n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, bounds, cur[0],
             tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
             planes, cyls, pt, dom, per, grav, dt, t_new, serial, True, XB, rm, sinks, disp2,
         )  # fmt: skip
@@ -231,7 +231,7 @@ def advance(
 
 @njit(cache=True)
 def compute_forces(
-    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, cur,
+    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, bounds, cur,
     tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
     planes, cyls, pt, dom, per, grav, dt, t, serial,
 ):  # fmt: skip
@@ -245,7 +245,7 @@ def compute_forces(
     wh = whist.copy()
     v = P[:n, 3:9].copy()
     _forces_and_kick(
-        n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, c,
+        n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, bounds, c,
         tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
         planes, cyls, pt, dom, per, grav, dt, t, serial,
         False, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 6)), np.zeros(0),

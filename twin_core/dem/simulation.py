@@ -81,11 +81,17 @@ class Simulation:
     seed : int
         Default seed of :meth:`insert_particles`.
     pair_scheme : {"auto", "scatter", "two_pass"}
-        Pair-force scheme (attribute, may be changed between runs): ``"scatter"`` evaluates each
-        pair once and adds it to both particles in one serial loop (fastest on one thread);
-        ``"two_pass"`` writes pair forces to a buffer and gathers them per particle (parallel);
-        ``"auto"`` (default) uses the scatter when numba runs one thread. The schemes give
-        bit-identical results.
+        Pair-force scheme (attribute, may be changed between runs): ``"scatter"`` (``"auto"``,
+        the default) evaluates each pair once and adds it to both particles, the owners split
+        into ``pair_chunks`` chunks that run on as many threads as there are, each into its own
+        force buffer; ``"two_pass"`` writes pair forces to a buffer and gathers them per
+        particle. Results do not depend on the thread count; the two schemes are bit-identical
+        with one chunk.
+    pair_chunks : int, optional
+        Chunks of the scatter scheme (attribute): at most this many threads share the pair
+        forces, and the summation order (hence the last bits of a chaotic trajectory) depends
+        on it, never on the threads running. Default: numba's thread count at start-up
+        (``NUMBA_NUM_THREADS``).
 
     Attributes ``t, ids, type_id, material_id, radius, mass, pos, vel, omega, force, torque,
     n_particles`` expose the state. Rows are re-sorted by neighbour cell at every neighbour-list
@@ -104,6 +110,7 @@ class Simulation:
         skin: float | None = None,
         seed: int = 0,
         pair_scheme: str = "auto",
+        pair_chunks: int | None = None,
     ) -> None:
         lo = _vec3(domain_lo, "domain_lo")
         hi = _vec3(domain_hi, "domain_hi")
@@ -133,6 +140,9 @@ class Simulation:
         self.skin: float | None = float(skin) if skin is not None else None
         self.seed = int(seed)
         self.pair_scheme = pair_scheme
+        self.pair_chunks = int(pair_chunks or numba.config.NUMBA_NUM_THREADS)
+        if self.pair_chunks < 1:
+            raise ValueError(f"pair_chunks must be >= 1, got {pair_chunks}")
         #: ``"adaptive"``: choose 1 or all numba threads at run time by measured throughput
         #: (:mod:`twin_core.dem.threads`); ``"fixed"``: the caller's thread count; None: follow
         #: ``twin_core.dem.threads.adaptive_threads()``
@@ -177,7 +187,8 @@ class Simulation:
         self._hist = np.zeros((2, cap, kown, 3))
         self._nown = np.zeros((2, cap), np.int64)
         self._pf = np.zeros((cap, kown, 10))
-        self._acc = np.zeros((cap, 6))
+        self._acc = np.zeros((max(1, getattr(self, "pair_chunks", 1)), cap, 6))
+        self._bounds = np.zeros(self._acc.shape[0] + 1, np.int64)
         self._rev_o = np.zeros((cap, krev), np.int64)
         self._rev_k = np.zeros((cap, krev), np.int64)
         self._nrev = np.zeros(cap, np.int64)
@@ -811,19 +822,28 @@ class Simulation:
             self._rebuild()
 
     def _serial(self) -> bool:
-        """Whether the serial pair scatter is used (``pair_scheme``, numba thread count)."""
-        if self.pair_scheme == "auto":
-            return numba.get_num_threads() == 1
-        if self.pair_scheme not in ("scatter", "two_pass"):
+        """Whether the (chunked) pair scatter is used (``pair_scheme``)."""
+        if self.pair_scheme not in ("auto", "scatter", "two_pass"):
             raise ValueError(
                 f"pair_scheme must be 'auto', 'scatter' or 'two_pass', got {self.pair_scheme!r}"
             )
-        return self.pair_scheme == "scatter"
+        return self.pair_scheme != "two_pass"
+
+    def _chunk_buffers(self) -> tuple[np.ndarray, np.ndarray]:
+        """The scatter's force buffers and chunk bounds, sized to ``pair_chunks``."""
+        k = int(self.pair_chunks)
+        if k < 1:
+            raise ValueError(f"pair_chunks must be >= 1, got {self.pair_chunks}")
+        if self._acc.shape[0] != k:
+            self._acc = np.zeros((k, self._cap, 6))
+            self._bounds = np.zeros(k + 1, np.int64)
+        return self._acc, self._bounds
 
     def _compute_forces(self) -> None:
+        self._chunk_buffers()
         compute_forces(
             self._n, self._P, self._F, self._IA, self._whist, self._nb, self._hist, self._nown,
-            self._rev_o, self._rev_k, self._nrev, self._pf, self._acc, self._cur,
+            self._rev_o, self._rev_k, self._nrev, self._pf, self._acc, self._bounds, self._cur,
             self._tri_nb, self._thist, self._ntri, self._tri_tmp, self._tri_x, self._tri_mesh,
             self._mesh_par, self._planes, self._cyls, self._pt, self._dom, self._per,
             self._grav, self.dt, self.t, self._serial(),
@@ -918,12 +938,13 @@ class Simulation:
         if chooser is not None:
             numba.set_num_threads(chooser.next_threads())
         n0 = self._n
+        self._chunk_buffers()
         t0 = time.perf_counter()
         status, k, n = advance(
             chunk, self._step, dt, self._n, self._P, self._F, self._IA, self._XB,
             self._rm, self._disp2, self._whist,
             self._nb, self._hist, self._nown, self._rev_o, self._rev_k, self._nrev,
-            self._pf, self._acc, self._cur, self._tri_nb, self._thist, self._ntri,
+            self._pf, self._acc, self._bounds, self._cur, self._tri_nb, self._thist, self._ntri,
             self._tri_tmp, self._tri_x0, self._tri_x, self._tri_xb, self._tri_mesh,
             self._mesh_par,
             bool(np.any(self._mesh_par[:, 0] != 0)) if len(self._mesh_par) else False,
@@ -985,6 +1006,8 @@ class Simulation:
             "dt_fraction": self.dt_fraction,
             "skin": self.skin,
             "seed": self.seed,
+            "pair_scheme": self.pair_scheme,
+            "pair_chunks": self.pair_chunks,
             "step": self._step,
             "next_id": self._next_id,
             "rmax": self._rmax,
@@ -1023,7 +1046,8 @@ class Simulation:
             dom[0:3], dom[3:6], periodic=tuple(bool(p) for p in a["per"]),
             gravity=a["grav"], materials=MaterialTable.from_dict(cfg["materials"]),
             dt=cfg["dt"] if cfg["dt_user"] else None, dt_fraction=cfg["dt_fraction"],
-            skin=cfg["skin"], seed=cfg["seed"],
+            skin=cfg["skin"], seed=cfg["seed"], pair_scheme=cfg.get("pair_scheme", "auto"),
+            pair_chunks=cfg.get("pair_chunks"),
         )  # fmt: skip
         n = a["P"].shape[0]
         kown = max(a["nb"].shape[1], 1)

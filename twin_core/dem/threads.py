@@ -1,10 +1,10 @@
 """Thread count chosen at run time from measured throughput (``twin dem run --threads auto``).
 
-On an idle two-core machine two numba threads (the parallel two-pass pair scheme) run the engine
-faster than one (the serial scatter); on a loaded machine every parallel region waits for a
-descheduled thread and two threads are slower than one (docs/dem_engine.md). The two schemes give
-bit-identical trajectories, so the thread count can change between chunks of steps without
-changing the results. :class:`ThreadChooser` alternates one thread and the maximum for a probe
+On an idle two-core machine two numba threads run the engine faster than one; on a loaded machine
+every parallel region waits for a descheduled thread and two threads are slower than one
+(docs/dem_engine.md). The pair forces are summed in an order fixed by the chunks of the scatter
+(``Simulation.pair_chunks``), not by the threads, so the thread count can change between chunks
+of steps without changing the results. :class:`ThreadChooser` alternates one thread and the maximum for a probe
 (each until it has ``probe_s`` of wall time), keeps the one with the higher particle-steps per
 wall second (median of its chunks) for ``hold_s`` of wall time, and probes again, so a machine
 whose load changes is followed.
