@@ -55,6 +55,7 @@ from twin_core.rtd.models import MODELS, get_model
 from twin_core.rtd.outliers import hampel
 from twin_core.rtd.pipeline import Preprocessing, fit_profile
 from twin_core.rtd.profiles import e_curve, from_arrays
+from twin_core.rtd.repeats import JointLackOfFit, pool
 from twin_core.rtd.truncation import truncate_pat
 
 T = np.arange(0.0, 251.0)
@@ -131,12 +132,12 @@ def _compute_truth(name: str) -> tuple[str, list[float], dict]:
     return name, c.tolist(), truth_quantities(truth)
 
 
-def prepare_truths(path: Path, jobs: int) -> None:
+def prepare_truths(path: Path, jobs: int, names: list[str] | None = None) -> None:
     """Every truth's measured-grid concentration and derived quantities, computed once (the
     PDE on the long fine grid is the slow part) in parallel, kept in ``path`` for reruns and
     inherited by the workers of the campaign."""
     stored = json.loads(path.read_text()) if path.exists() else {}
-    todo = [t.name for t in TRUTHS if t.name not in stored]
+    todo = [t.name for t in TRUTHS if t.name not in stored and (names is None or t.name in names)]
     if todo:
         with Pool(jobs) as pool:
             for name, c, q in tqdm(
@@ -244,6 +245,11 @@ def adequacy_task(task: tuple[str, str, int]) -> dict:
         "ad_tests": {x.name: [x.statistic, x.p_value] for x in lof.tests},
         "ad_mrt_error_pct": 100
         * (ad.moments["mean_residence_time_s"].value / q["mean_residence_time_s"] - 1),
+        "ad_mrt": [
+            ad.moments["mean_residence_time_s"].value,
+            ad.moments["mean_residence_time_s"].stderr,
+        ],
+        "truth_mrt": q["mean_residence_time_s"],
     }
 
 
@@ -425,6 +431,55 @@ def adequacy_tables(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def repeats_tables(rows: list[dict], k: int) -> str:
+    """Markdown table: profiles of one truth and noise taken k at a time (disjoint, by index)
+    as repeat pulses of one system (``twin_core.rtd.repeats``): share of the k-tuples whose
+    joint AD lack of fit is flagged, by each combined test, and the coverage of the pooled
+    mean residence time's 95 % interval (the pure AD truths)."""
+    lines = [
+        f"| truth | noise | {k}-tuples | AD flagged jointly % (sd) | shape % | exchange % | "
+        "one profile flagged % | pooled MRT interval covers % (sd) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    groups = [(t.name, [t.name]) for t in TRUTHS]
+    groups.append(("pure AD", [t.name for t in TRUTHS if t.name.startswith("ad_")]))
+    for label, names in groups:
+        for noise in NOISE:
+            tuples = []
+            for name in names:
+                sub = sorted(
+                    (
+                        r
+                        for r in rows
+                        if r["truth"] == name and r["noise"] == noise and "ad_mrt" in r
+                    ),
+                    key=lambda r: r["i"],
+                )
+                tuples += [sub[j : j + k] for j in range(0, len(sub) - k + 1, k)]
+            if not tuples:
+                continue
+            joint = [
+                JointLackOfFit.from_p_values(
+                    {n: [r["ad_tests"][n][1] for r in tup] for n in tup[0]["ad_tests"]}
+                )
+                for tup in tuples
+            ]
+            lv = joint[0].levels
+            covers = []
+            if label.startswith("ad") or label == "pure AD":
+                for tup in tuples:
+                    pl = pool([r["ad_mrt"][0] for r in tup], [r["ad_mrt"][1] for r in tup])
+                    covers.append(pl.ci[0] <= tup[0]["truth_mrt"] <= pl.ci[1])
+            single = [_ad_flagged(r) for tup in tuples for r in tup]
+            lines.append(
+                f"| {label} | {noise} | {len(tuples)} | {_pct_sd([not j.adequate for j in joint])} | "
+                f"{_pct([j.combined['shape'] < lv['shape'] for j in joint])} | "
+                f"{_pct([j.combined['exchange'] < lv['exchange'] for j in joint])} | "
+                f"{_pct(single)} | {_pct_sd(covers)} |"
+            )
+    return "\n".join(lines)
+
+
 def selection_tables(rows: list[dict]) -> str:
     """Markdown table: what BIC selects per truth and noise; the wall time of a candidate
     (median over candidates and profiles, and the slowest) and the failed candidates."""
@@ -471,17 +526,40 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="only the AD fit and its lack-of-fit tests on the same profiles (adequacy.jsonl)",
     )
+    ap.add_argument(
+        "--repeats",
+        type=int,
+        default=0,
+        help="with --adequacy-only: also score the profiles k at a time as repeat pulses",
+    )
+    ap.add_argument(
+        "--zone-profiles",
+        type=int,
+        default=None,
+        help="with --adequacy-only: profiles per stagnant-zone truth and noise (default --profiles)",
+    )
+    ap.add_argument("--truths", nargs="+", default=None, help="only these truths")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     print(describe())
-    prepare_truths(args.out / "truths.json", args.jobs)
     # profile index outermost: a campaign stopped early is balanced across truths and noises
-    tasks = [(t.name, n, i) for i in range(args.profiles) for t in TRUTHS for n in NOISE]
+    zone = args.profiles if args.zone_profiles is None else args.zone_profiles
+    wanted = [t for t in TRUTHS if args.truths is None or t.name in args.truths]
+    prepare_truths(args.out / "truths.json", args.jobs, [t.name for t in wanted])
+    tasks = [
+        (t.name, n, i)
+        for i in range(max(args.profiles, zone if args.adequacy_only else 0))
+        for t in wanted
+        for n in NOISE
+        if i < (zone if (args.adequacy_only and t.family is None) else args.profiles)
+    ]
     if args.adequacy_only:
         # the AD and stagnant-zone truths (size and power of the test) before the others
         tasks.sort(key=lambda x: x[0] in ("tis_n4", "emg"))
         rows = _run(args.out / "adequacy.jsonl", tasks, adequacy_task, args.jobs, "adequacy")
         print(adequacy_tables(rows))
+        if args.repeats > 1:
+            print(repeats_tables(rows, args.repeats))
         print(noncentrality_table())
         return
     if tasks:  # --profiles 0: the selection table alone

@@ -1,6 +1,7 @@
 """``twin rtd``: analyze tracer profiles, funnel plots, lot boundaries, seed reproduction.
 
 twin rtd analyze FILE [--fit MODEL|all|none] [preprocessing] --out DIR
+twin rtd analyze FILE1 FILE2 [...] [--fit MODEL] [preprocessing] --out DIR   (repeat pulses)
 twin rtd lots FILE [--fit MODEL] [--disturbance START END] [preprocessing] --out DIR
 twin rtd funnel FILE [--compare FILE2] [--fit MODEL] [--limit 5] [preprocessing] --out DIR
 twin rtd reproduce --out DIR [--seed 0] [--repeats 3]
@@ -25,8 +26,17 @@ import numpy as np
 _DEFAULT_TIME_LIMIT_HELP = "30"
 
 
-def _profile_options(q: argparse.ArgumentParser) -> None:
-    q.add_argument("file", type=Path, help="CSV (or ; / tab separated) lab export")
+def _profile_options(q: argparse.ArgumentParser, repeats: bool = False) -> None:
+    if repeats:
+        q.add_argument(
+            "file",
+            type=Path,
+            nargs="+",
+            help="CSV (or ; / tab separated) lab export; several: repeat pulses of one system, "
+            "analysed jointly (lack of fit combined, estimates pooled)",
+        )
+    else:
+        q.add_argument("file", type=Path, help="CSV (or ; / tab separated) lab export")
     q.add_argument("--time-col", default=None, help="time column: name or number (1 = first)")
     q.add_argument("--conc-col", default=None, help="concentration column: name or number")
     q.add_argument("--time-unit", default=None, help="s, ms, min or h, if not in the header")
@@ -95,7 +105,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a = sub.add_parser(
         "analyze", help="preprocessing, fit with intervals and lack of fit -> JSON, CSV, figure"
     )
-    _profile_options(a)
+    _profile_options(a, repeats=True)
     _preprocess_options(a)
     _fit_options(a, "ad_open")
     a.add_argument("--out", type=Path, required=True)
@@ -185,9 +195,14 @@ def _analyze(args: argparse.Namespace) -> int:
     from twin_core.quality.analysis import analyze
     from twin_core.rtd.plots import plot_profile
 
+    if len(args.file) > 1:
+        return _analyze_repeats(args)
     try:
         res = analyze(
-            _load(args), _preprocessing(args), _model(args), time_limit_s=_time_limit(args)
+            _load(args, args.file[0]),
+            _preprocessing(args),
+            _model(args),
+            time_limit_s=_time_limit(args),
         )
         args.out.mkdir(parents=True, exist_ok=True)
         p, s = res.processed, res.summary
@@ -202,6 +217,50 @@ def _analyze(args: argparse.Namespace) -> int:
         return _finish(args.out, "report", report, summary)
     except (ValueError, OSError) as exc:
         return _fail(exc)
+
+
+def _analyze_repeats(args: argparse.Namespace) -> int:
+    """Several files: repeat pulses of one system (``quality.analysis.analyze_repeats``)."""
+    from twin_core.quality.analysis import analyze_repeats
+    from twin_core.quality.plots import plot_repeats
+
+    try:
+        model = _model(args)
+        if model is None or model.strip().lower() == "all":
+            raise ValueError(f"--fit must name one model for repeat pulses, got {args.fit!r}")
+        res = analyze_repeats(
+            [_load(args, f) for f in args.file],
+            _preprocessing(args),
+            model,
+            time_limit_s=_time_limit(args),
+        )
+        args.out.mkdir(parents=True, exist_ok=True)
+        rows = {"quantity": list(res.pooled)}
+        for i in range(len(res.repeats)):
+            rows[f"repeat_{i + 1}"] = [v.values[i] for v in res.pooled.values()]
+            rows[f"repeat_{i + 1}_stderr"] = [v.stderrs[i] for v in res.pooled.values()]
+        rows["pooled"] = [v.value for v in res.pooled.values()]
+        rows["pooled_ci_low"] = [v.ci[0] for v in res.pooled.values()]
+        rows["pooled_ci_high"] = [v.ci[1] for v in res.pooled.values()]
+        rows["repeats_agree"] = [v.agree for v in res.pooled.values()]
+        _write_csv(args.out / "repeats.csv", rows)
+        plot_repeats(res).savefig(args.out / "repeats.png", dpi=120)
+        report = res.as_dict()
+        summary = {
+            "adequate": res.adequate,
+            "joint_lack_of_fit_p": res.joint.p_value,
+            "model": model,
+            "repeats": len(res.repeats),
+            "pooled": {k: v.as_dict() for k, v in res.pooled.items() if k in _POOLED_SHOWN},
+            "warnings": res.warnings,
+        }
+        return _finish(args.out, "report", report, summary)
+    except (ValueError, OSError) as exc:
+        return _fail(exc)
+
+
+#: pooled quantities printed on stdout (all are in report.json and repeats.csv)
+_POOLED_SHOWN = ("mean_residence_time_s", "variance_s2", "t_lo_s", "t_hi_s")
 
 
 def _write_csv(path: Path, columns: dict) -> None:

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
-from twin_core.quality.analysis import FunnelAnalysis, LotsAnalysis
+from twin_core.quality.analysis import FunnelAnalysis, LotsAnalysis, RepeatsAnalysis
 
-__all__ = ["plot_funnel", "plot_funnel_difference", "plot_lots"]
+__all__ = ["plot_funnel", "plot_funnel_difference", "plot_lots", "plot_repeats"]
 
 
 def _warn(fig: Figure, warnings: list[str]) -> None:
@@ -89,5 +89,38 @@ def plot_lots(result: LotsAnalysis) -> Figure:
     ax.set_title(f"lot boundaries ({result.lower:.1%} / {result.upper:.1%} of F)")
     ax.legend(fontsize=8)
     _warn(fig, a.warnings)
+    fig.tight_layout()
+    return fig
+
+
+def plot_repeats(result: RepeatsAnalysis) -> Figure:
+    """Repeat pulses: each processed profile with its fit, and the mean residence time of each
+    repeat with its interval beside the pooled one (a forest plot), with the joint verdict."""
+    fig = Figure(figsize=(10, 4.5))
+    ax, fx = fig.subplots(1, 2, gridspec_kw={"width_ratios": [3, 2]})
+    for i, a in enumerate(result.repeats):
+        p = a.processed
+        ax.plot(p.t, p.y, color=f"C{i}", lw=0.8, alpha=0.6, label=p.profile.name)
+        if a.summary is not None:
+            ax.plot(p.t, a.summary.fit.fitted, color=f"C{i}", lw=1.5, ls="--")
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel("concentration (% w/w), processed; dashed: fit")
+    ax.legend(fontsize=7)
+    key = "mean_residence_time_s"
+    est = result.pooled.get(key)
+    if est is not None:
+        for i, a in enumerate(result.repeats):
+            m = a.summary.moments[key]
+            fx.errorbar(m.value, i, xerr=[[m.value - m.ci[0]], [m.ci[1] - m.value]], fmt="o",
+                        color=f"C{i}")  # fmt: skip
+        k = len(est.values)
+        fx.errorbar(est.value, k, xerr=[[est.value - est.ci[0]], [est.ci[1] - est.value]],
+                    fmt="D", color="k")  # fmt: skip
+        fx.set_yticks(range(k + 1), [f"repeat {i + 1}" for i in range(k)] + ["pooled"])
+        fx.set_xlabel("mean residence time (s), 95 % interval")
+    j = result.joint
+    verdict = "adequate" if j.adequate else "INADEQUATE"
+    fx.set_title(f"joint lack of fit: {verdict} (p = {j.p_value:.2g})", fontsize=9)
+    _warn(fig, result.warnings)
     fig.tight_layout()
     return fig
