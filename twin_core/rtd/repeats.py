@@ -35,6 +35,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
 from .likelihood import LACK_OF_FIT_ALPHA, LackOfFit, lack_of_fit_levels
@@ -43,6 +44,8 @@ __all__ = [
     "HETEROGENEITY_ALPHA",
     "JointLackOfFit",
     "Pooled",
+    "TEST_FAMILIES",
+    "combine_repeat_tests",
     "joint_lack_of_fit",
     "pool",
     "pool_estimates",
@@ -56,14 +59,16 @@ HETEROGENEITY_ALPHA = 0.05
 P_FLOOR = 1e-15
 
 
-def stouffer(p_values: Sequence[float]) -> float:
+def stouffer(p_values: ArrayLike) -> float | NDArray[np.float64]:
     """Stouffer's combined one-sided p-value of independent tests:
-    Z = sum_i Phi^-1(1 - p_i) / sqrt(k), p = 1 - Phi(Z) (module docstring)."""
+    Z = sum_i Phi^-1(1 - p_i) / sqrt(k), p = 1 - Phi(Z) (module docstring). A 2-D array
+    combines each row (k = its length)."""
     p = np.clip(np.asarray(p_values, dtype=float), P_FLOOR, 1.0 - P_FLOOR)
     if p.size == 0:
         raise ValueError("p_values must not be empty")
-    z = float(np.sum(stats.norm.isf(p)) / math.sqrt(p.size))
-    return float(stats.norm.sf(z))
+    z = np.sum(stats.norm.isf(p), axis=-1) / math.sqrt(p.shape[-1])
+    out = stats.norm.sf(z)
+    return float(out) if np.ndim(out) == 0 else out
 
 
 @dataclass(frozen=True)
@@ -82,7 +87,7 @@ class JointLackOfFit:
     ) -> JointLackOfFit:
         """From each test's p-values in the repeats (test name -> one p per repeat)."""
         per = {k: tuple(float(p) for p in v) for k, v in per_repeat.items()}
-        return cls(per, {k: stouffer(v) for k, v in per.items()}, alpha)
+        return cls(per, {k: float(stouffer(v)) for k, v in per.items()}, alpha)
 
     @property
     def levels(self) -> dict[str, float]:
@@ -123,20 +128,40 @@ class JointLackOfFit:
         }
 
 
+#: tests of one alternative under two names: a repeat whose exchange extension did not fit in
+#: time keeps the linearised tail test (``rtd.likelihood``); both test AD against a stagnant
+#: tail and are combined as one
+TEST_FAMILIES = {"tail": "exchange"}
+
+
+def combine_repeat_tests(
+    per_repeat: Sequence[Mapping[str, float]], alpha: float = LACK_OF_FIT_ALPHA
+) -> JointLackOfFit:
+    """Combine the lack-of-fit p-values of each repeat (``per_repeat[i][test] = p``): tests of
+    one family (``TEST_FAMILIES``) count as one, named as the majority of the repeats name it
+    (ties: the exchange test); a test missing from a repeat is left out of the joint verdict."""
+    if not per_repeat:
+        raise ValueError("per_repeat must hold the tests of at least one repeat")
+    fam: list[dict[str, tuple[str, float]]] = [
+        {TEST_FAMILIES.get(k, k): (k, float(v)) for k, v in tests.items()} for tests in per_repeat
+    ]
+    per: dict[str, tuple[float, ...]] = {}
+    for key in fam[0]:
+        if all(key in f for f in fam):
+            names = [f[key][0] for f in fam]
+            name = max(sorted(set(names), key=lambda n: n != key), key=names.count)
+            per[name] = tuple(f[key][1] for f in fam)
+    return JointLackOfFit.from_p_values(per, alpha)
+
+
 def joint_lack_of_fit(
     tests: Sequence[LackOfFit], alpha: float = LACK_OF_FIT_ALPHA
 ) -> JointLackOfFit:
-    """Combine the lack-of-fit tests of one model fitted to each repeat (module docstring).
-    Only tests present in every repeat are combined."""
+    """Combine the lack-of-fit tests of one model fitted to each repeat (module docstring;
+    :func:`combine_repeat_tests`)."""
     if not tests:
         raise ValueError("tests must hold the lack of fit of at least one repeat")
-    names = [x.name for x in tests[0].tests]
-    per: dict[str, tuple[float, ...]] = {}
-    for name in names:
-        ps = [next((x.p_value for x in lof.tests if x.name == name), None) for lof in tests]
-        if all(p is not None for p in ps):
-            per[name] = tuple(float(p) for p in ps)  # type: ignore[arg-type]
-    return JointLackOfFit.from_p_values(per, alpha)
+    return combine_repeat_tests([{x.name: x.p_value for x in lof.tests} for lof in tests], alpha)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,13 @@ from twin_core.quality.analysis import analyze_repeats
 from twin_core.rtd import virtual as V
 from twin_core.rtd.likelihood import DeviationTest, LackOfFit, NoiseModel
 from twin_core.rtd.profiles import from_arrays
-from twin_core.rtd.repeats import JointLackOfFit, joint_lack_of_fit, pool, stouffer
+from twin_core.rtd.repeats import (
+    JointLackOfFit,
+    combine_repeat_tests,
+    joint_lack_of_fit,
+    pool,
+    stouffer,
+)
 
 T = np.arange(0.0, 251.0)
 
@@ -26,11 +32,12 @@ def test_stouffer_is_uniform_under_the_null_and_adds_up_a_common_misfit():
     each reject at the analytic Phi(1.5 sqrt(3) - 1.645) = 83.0 % (one repeat: 44.2 %)."""
     rng = np.random.default_rng(11)
     p = rng.uniform(size=(30_000, 3))
-    comb = np.array([stouffer(row) for row in p])
+    comb = stouffer(p)  # each row
+    assert comb[0] == stouffer(list(p[0]))
     assert abs(np.mean(comb < 0.05) - 0.05) < 0.004
     assert stats.kstest(comb, "uniform").pvalue > 1e-3
     z = rng.normal(1.5, 1.0, size=(30_000, 3))
-    comb = np.array([stouffer(row) for row in stats.norm.sf(z)])
+    comb = stouffer(stats.norm.sf(z))
     expected = stats.norm.cdf(1.5 * np.sqrt(3) - stats.norm.isf(0.05))
     assert abs(np.mean(comb < 0.05) - expected) < 0.007
     assert stouffer([0.0, 0.5]) < 1e-6 and stouffer([1.0, 1.0]) > 0.999  # clipped, finite
@@ -56,6 +63,16 @@ def test_joint_lack_of_fit_combines_each_test_then_weighs_them():
     assert j.levels == pytest.approx({"shape": 0.002, "exchange": 0.008})
     assert not j.adequate and j.worst == "exchange"
     assert JointLackOfFit.from_p_values({"shape": [0.4, 0.6]}).adequate
+    # a repeat that kept the linearised tail test: combined with the others' exchange test
+    mixed = combine_repeat_tests(
+        [
+            {"shape": 0.4, "exchange": 0.02},
+            {"shape": 0.6, "tail": 0.02},
+            {"shape": 0.5, "exchange": 0.3},
+        ]
+    )
+    assert set(mixed.combined) == {"shape", "exchange"}
+    assert mixed.per_repeat["exchange"] == (0.02, 0.02, 0.3)
 
 
 def test_pooled_interval_covers_with_and_without_run_to_run_variation():
