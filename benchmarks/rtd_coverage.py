@@ -46,10 +46,12 @@ from twin_core.rtd import virtual as V
 from twin_core.rtd.denoise import denoise
 from twin_core.rtd.fitting import fit
 from twin_core.rtd.likelihood import (
+    LACK_OF_FIT_ALPHA,
     NoiseModel,
     fit_candidates,
     fit_raw,
     lack_of_fit_levels,
+    weighted_bonferroni,
 )
 from twin_core.rtd.models import MODELS, get_model
 from twin_core.rtd.outliers import hampel
@@ -399,8 +401,7 @@ def _ad_flagged(row: dict) -> bool:
     tests = row.get("ad_tests")
     if not tests:
         return not row["ad_adequate"]
-    levels = lack_of_fit_levels(list(tests))
-    return any(v[1] < levels[k] for k, v in tests.items())
+    return weighted_bonferroni({k: v[1] for k, v in tests.items()})[0] < LACK_OF_FIT_ALPHA
 
 
 def adequacy_tables(rows: list[dict]) -> str:

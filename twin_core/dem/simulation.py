@@ -187,7 +187,7 @@ class Simulation:
         self._hist = np.zeros((2, cap, kown, 3))
         self._nown = np.zeros((2, cap), np.int64)
         self._pf = np.zeros((cap, kown, 10))
-        self._acc = np.zeros((max(1, getattr(self, "pair_chunks", 1)), cap, 6))
+        self._acc = np.zeros((self.pair_chunks, cap, 6))
         self._bounds = np.zeros(self._acc.shape[0] + 1, np.int64)
         self._rev_o = np.zeros((cap, krev), np.int64)
         self._rev_k = np.zeros((cap, krev), np.int64)

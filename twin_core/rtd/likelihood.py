@@ -65,6 +65,7 @@ sample size is needed).
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -93,6 +94,7 @@ __all__ = [
     "Ranking",
     "FitTimeout",
     "LACK_OF_FIT_ALPHA",
+    "weighted_bonferroni",
     "LACK_OF_FIT_WEIGHTS",
     "lack_of_fit_levels",
     "TIME_LIMIT_S",
@@ -182,6 +184,19 @@ def lack_of_fit_levels(names: list[str], alpha: float = LACK_OF_FIT_ALPHA) -> di
     return {k: alpha * v / total for k, v in w.items()}
 
 
+def weighted_bonferroni(
+    p_values: Mapping[str, float], alpha: float = LACK_OF_FIT_ALPHA
+) -> tuple[float, str | None]:
+    """Combined p-value of the named tests, min(1, min_i p_i alpha / level_i) with each test's
+    level from :func:`lack_of_fit_levels` (Holm 1979), and the test attaining it (1 and None
+    when there is none)."""
+    if not p_values:
+        return 1.0, None
+    levels = lack_of_fit_levels(list(p_values), alpha)
+    worst = min(p_values, key=lambda k: p_values[k] / levels[k])
+    return float(min(1.0, p_values[worst] * alpha / levels[worst])), worst
+
+
 @dataclass(frozen=True)
 class LackOfFit:
     """Lack-of-fit tests of a fit (module docstring); the fit is adequate when no test's
@@ -201,10 +216,12 @@ class LackOfFit:
 
     @property
     def p_value(self) -> float:
-        if not self.tests:
-            return 1.0
-        levels = self.levels
-        return float(min(1.0, min(x.p_value * self.alpha / levels[x.name] for x in self.tests)))
+        return weighted_bonferroni({x.name: x.p_value for x in self.tests}, self.alpha)[0]
+
+    @property
+    def worst(self) -> str | None:
+        """The test with the smallest p-value relative to its level."""
+        return weighted_bonferroni({x.name: x.p_value for x in self.tests}, self.alpha)[1]
 
     @property
     def adequate(self) -> bool:

@@ -230,12 +230,11 @@ def _fit_baseline(mode: str | float) -> float | None:
 
 def inadequacy_warning(fit: RawFit) -> str:
     """The warning for a fit the lack-of-fit test rejects."""
-    levels = fit.lack_of_fit.levels
-    worst = min(fit.lack_of_fit.tests, key=lambda x: x.p_value / levels[x.name])
     return (
         f"model {fit.model} does not fit the profile: lack-of-fit p = "
         f"{fit.lack_of_fit.p_value:.2g} < {fit.lack_of_fit.alpha:g} (largest deviation: "
-        f"{worst.name}); its intervals and derived quantities assume a model the data reject"
+        f"{fit.lack_of_fit.worst}); its intervals and derived quantities assume a model the data "
+        "reject"
     )
 
 

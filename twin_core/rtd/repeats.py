@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
-from .likelihood import LACK_OF_FIT_ALPHA, LackOfFit, lack_of_fit_levels
+from .likelihood import LACK_OF_FIT_ALPHA, LackOfFit, lack_of_fit_levels, weighted_bonferroni
 
 __all__ = [
     "HETEROGENEITY_ALPHA",
@@ -96,10 +96,7 @@ class JointLackOfFit:
     @property
     def p_value(self) -> float:
         """min_i p_i alpha / level_i (weighted Bonferroni, as for one record)."""
-        if not self.combined:
-            return 1.0
-        lv = self.levels
-        return float(min(1.0, min(p * self.alpha / lv[k] for k, p in self.combined.items())))
+        return weighted_bonferroni(self.combined, self.alpha)[0]
 
     @property
     def adequate(self) -> bool:
@@ -108,10 +105,7 @@ class JointLackOfFit:
     @property
     def worst(self) -> str | None:
         """The test with the smallest combined p relative to its level."""
-        if not self.combined:
-            return None
-        lv = self.levels
-        return min(self.combined, key=lambda k: self.combined[k] / lv[k])
+        return weighted_bonferroni(self.combined, self.alpha)[1]
 
     def as_dict(self) -> dict:
         return {

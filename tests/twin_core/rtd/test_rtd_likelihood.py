@@ -14,9 +14,7 @@ from scipy import linalg, stats
 from twin_core.rtd import virtual as V
 from twin_core.rtd.derived import model_grid, moment_estimates
 from twin_core.rtd.likelihood import (
-    DeviationTest,
     FitTimeout,
-    LackOfFit,
     NoiseModel,
     _lower_weights,
     _neg2_loglik,
@@ -167,7 +165,7 @@ def test_exchange_null_distribution_laws():
         assert _sup_null_pvalue(c, two, *own) == pytest.approx(both, abs=0.01)
 
 
-def test_weighted_bonferroni_levels():
+def test_weighted_bonferroni_levels(shape_exchange_lof):
     """The levels of the lack-of-fit tests add up to alpha in the ratio of their weights
     (weighted Bonferroni, Holm 1979): the exchange test 0.8 %, the shape test 0.2 %; a fit is
     inadequate exactly when one p-value is below its own level."""
@@ -176,15 +174,7 @@ def test_weighted_bonferroni_levels():
     assert lack_of_fit_levels(["shape", "tail"], 0.01) == pytest.approx(
         {"shape": 0.005, "tail": 0.005}
     )
-    noise = NoiseModel(1.0, 0.0, 0.0)
-
-    def lof(p_shape: float, p_exchange: float) -> LackOfFit:
-        tests = (
-            DeviationTest("shape", 1.0, (6, 30.0), p_shape),
-            DeviationTest("exchange", 1.0, (1, 30.0), p_exchange),
-        )
-        return LackOfFit(tests, 0.01, noise)
-
+    lof = shape_exchange_lof
     assert lof(0.003, 0.5).adequate and lof(0.003, 0.5).p_value == pytest.approx(0.015)
     assert not lof(0.5, 0.007).adequate and lof(0.5, 0.007).p_value == pytest.approx(0.00875)
     assert not lof(0.0019, 0.5).adequate

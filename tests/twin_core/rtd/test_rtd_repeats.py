@@ -13,7 +13,6 @@ from scipy import stats
 from services.cli.main import main
 from twin_core.quality.analysis import analyze_repeats
 from twin_core.rtd import virtual as V
-from twin_core.rtd.likelihood import DeviationTest, LackOfFit, NoiseModel
 from twin_core.rtd.profiles import from_arrays
 from twin_core.rtd.repeats import (
     JointLackOfFit,
@@ -43,19 +42,11 @@ def test_stouffer_is_uniform_under_the_null_and_adds_up_a_common_misfit():
     assert stouffer([0.0, 0.5]) < 1e-6 and stouffer([1.0, 1.0]) > 0.999  # clipped, finite
 
 
-def test_joint_lack_of_fit_combines_each_test_then_weighs_them():
+def test_joint_lack_of_fit_combines_each_test_then_weighs_them(shape_exchange_lof):
     """Each test is combined over the repeats (Stouffer), then the tests by the single-record
     weighted Bonferroni (shape 0.2 %, exchange 0.8 % of 1 %): two repeats each at p = 0.02 on
     the exchange test are not flagged alone but are jointly (combined p = 0.0023 < 0.008)."""
-    noise = NoiseModel(0.01, 0.005, 0.0)
-
-    def lof(p_shape: float, p_exchange: float) -> LackOfFit:
-        tests = (
-            DeviationTest("shape", 1.0, (6, 200.0), p_shape),
-            DeviationTest("exchange", 5.0, (2, 40.0), p_exchange),
-        )
-        return LackOfFit(tests, 0.01, noise)
-
+    lof = shape_exchange_lof
     runs = [lof(0.4, 0.02), lof(0.6, 0.02)]
     assert all(r.adequate for r in runs)
     j = joint_lack_of_fit(runs)
