@@ -90,9 +90,14 @@ def step_models(args: argparse.Namespace, speeds: list[float]) -> dict[float, di
     """Build, validate and save one section model per finished speed."""
     from twin_core.compartment import load_fields
     from twin_core.compartment.build import BuildOptions, build_blender_model
+    from twin_core.scenes.blender import add_transitions
 
     out = args.runs / "models"
     out.mkdir(parents=True, exist_ok=True)
+    for r in speeds:  # runs made before the scene counted transitions
+        run_dir = args.runs / f"rpm_{r:g}"
+        if load_fields(run_dir / "fields.npz").transitions is None:
+            add_transitions(run_dir)
     fields = {r: load_fields(args.runs / f"rpm_{r:g}" / "fields.npz") for r in speeds}
     cfg = load_scene(args.scene)
     window = cfg.mix_s
@@ -115,6 +120,8 @@ def step_models(args: argparse.Namespace, speeds: list[float]) -> dict[float, di
             "section_mean_residence_s": rep.get("mean_residence_time_s"),
             "blender_mean_residence_time_s": rep.get("blender_mean_residence_time_s"),
             "rtd_validation": rep.get("rtd_validation"),
+            "flow_source": rep.get("flow_source"),
+            "flow_source_candidates": rep.get("flow_source_candidates"),
             "transits": int(len(transit)),
         }
         print(f"{r:g} rpm: {json.dumps(reports[r], default=float)}")

@@ -30,7 +30,10 @@ class BlenderModel(BaseModel):
     flow_src: list[int] = Field(description="flow triplets: source compartment")
     flow_dst: list[int] = Field(description="flow triplets: destination compartment")
     flow_kg_s: list[float] = Field(description="flow triplets: mass flow (kg/s)")
-    flow_wrap: list[bool] = Field(description="flow goes through the periodic face")
+    flow_wrap: list[bool] = Field(
+        description="flow goes through the periodic face (forward from a higher slice to a "
+        "lower one, backward the other way)"
+    )
     compartment_slice: list[int] = Field(description="axial slice of each compartment")
     inlet_compartments: list[int] = Field(
         min_length=1, description="first-slice compartments fed through the periodic face"
@@ -107,11 +110,12 @@ class BlenderModel(BaseModel):
         dst = np.asarray(self.flow_dst, dtype=np.int64)
         w = np.asarray(self.flow_wrap, dtype=bool)
         r = np.asarray(self.flow_kg_s, dtype=float)
-        last = int(sl.max())
-        fwd = w & (sl[src] == last) & (sl[dst] == 0)
-        bwd = w & (sl[src] == 0) & (sl[dst] == last)
+        # through the periodic face forward: from a higher slice to a lower one (the last to
+        # the first for face flows; shorter jumps of particle transitions), backward reversed
+        fwd = w & (sl[src] > sl[dst])
+        bwd = w & (sl[src] < sl[dst])
         if np.any(w & ~fwd & ~bwd):
-            raise ValueError("flow_wrap flows must join the last and the first slice")
+            raise ValueError("flow_wrap flows must join two different slices")
         feed = np.zeros(n)
         np.add.at(feed, dst[fwd], r[fwd])
         dis = np.zeros(n)

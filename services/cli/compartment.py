@@ -32,8 +32,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument(
         "--flow-source",
         default="auto",
-        choices=("auto", "crossings", "velocity"),
-        help="cell-face flows from crossing counts or upwinded velocities",
+        choices=("auto", "transitions", "crossings", "velocity"),
+        help="flows from particle transitions at a lag (kinetic zoning), face crossing counts "
+        "or upwinded velocities; auto: with transit times, the one closer to them",
+    )
+    b.add_argument(
+        "--mobility-classes",
+        type=int,
+        default=8,
+        help="classes of the cells' escape rate in the kinetic zoning (transitions)",
     )
     b.add_argument("--sections", type=int, default=8, help="periodic sections in series")
     b.add_argument(
@@ -162,7 +169,10 @@ def cmd_build(args: argparse.Namespace) -> int:
             samples, window = load_transit_times(args.transit_times)
         opts = BuildOptions(
             variables=tuple(v.strip() for v in args.variables.split(",") if v.strip()),
-            **{k: getattr(args, k) for k in ("tol", "min_cells", "flow_source", "sections")},
+            **{
+                k: getattr(args, k)
+                for k in ("tol", "min_cells", "flow_source", "sections", "mobility_classes")
+            },
             **{k: getattr(args, k) for k in ("section_form", "n_upstream", "rpm", "split_axis")},
             **{k: getattr(args, k) for k in ("rsd_source", "surrogate", "seed")},
             rsd_grid=tuple(args.rsd_grid),

@@ -35,6 +35,15 @@ class BuildOptions:
     calibrates the rpm law; needs ``rpm``). ``transit_times`` / ``transit_window_s``: DEM
     particle transit times of the section (s) and their recording window. ``surrogate``:
     particles of the random-walk surrogate when crossings exist (0: none).
+
+    ``flow_source``: "crossings" (face crossings, zoned by ``variables`` / ``tol`` /
+    ``min_cells``: the seed's method), "transitions" (particle transitions at a lag, zoned
+    kinetically: ``mobility_classes`` classes of equal cell count of the cells' escape rate
+    times the sign of vx, cells of one class in a slice lumped whether or not they touch),
+    "velocity", or "auto": with both crossings and transitions in the fields and transit
+    times given, both models are built and the one whose (window-censored) RTD is closer to
+    the transits in KS distance is kept, both reported (``flow_source_candidates``); without
+    transit times, transitions when present, else crossings, else velocity.
     """
 
     variables: tuple[str, ...] = ("vx", "vy", "vz")
@@ -46,6 +55,7 @@ class BuildOptions:
     n_upstream: int | None = None
     rpm: float | None = None
     rpm_runs: Mapping[float, Any] = field(default_factory=dict)
+    mobility_classes: int = 8
     split_axis: int = 1
     rsd_source: str = "cells"
     rsd_grid: tuple[int, int, int] = (10, 6, 6)
@@ -123,16 +133,48 @@ def cell_grid_rsd(fields: Any, cells: Any, opts: BuildOptions, t_mix: np.ndarray
     )
 
 
-def _section_model(fields: Any, opts: BuildOptions, source: str) -> Any:
+def zoning_kwargs(opts: BuildOptions, flow_source: str) -> dict[str, Any]:
+    """CompartmentModel zoning arguments of a flow source (:class:`BuildOptions`)."""
+    if flow_source == "transitions":
+        return {
+            "variables": ("mobility", "vx"),
+            "quantile_classes": {"mobility": opts.mobility_classes},
+            "tol_fraction": opts.tol,
+            "connected": False,
+            "flow_source": "transitions",
+        }
+    return {
+        "variables": opts.variables,
+        "tol_fraction": opts.tol,
+        "min_cells": opts.min_cells,
+        "flow_source": flow_source,
+    }
+
+
+def flow_source_candidates(fields: Any, opts: BuildOptions) -> list[str]:
+    """The flow sources :func:`build_blender_model` builds (``BuildOptions.flow_source``)."""
+    if opts.flow_source != "auto":
+        return [opts.flow_source]
+    have = [
+        s
+        for s, ok in (
+            ("transitions", fields.transitions is not None),
+            ("crossings", fields.has_crossings),
+        )
+        if ok
+    ]
+    if not have:
+        return ["velocity"]
+    return have if opts.transit_times is not None else have[:1]
+
+
+def _section_model(fields: Any, opts: BuildOptions, source: str, flow_source: str) -> Any:
     from twin_core.compartment import CompartmentModel
 
     model = CompartmentModel(
-        variables=opts.variables,
-        tol_fraction=opts.tol,
-        min_cells=opts.min_cells,
-        flow_source=opts.flow_source,
         section_form=opts.section_form,
         n_upstream=opts.n_upstream,
+        **zoning_kwargs(opts, flow_source),
     ).fit(fields)
     if model.section_ is None:
         raise ValueError(
@@ -158,6 +200,29 @@ def _validation_samples(
     return None, None
 
 
+def _transit_ks(model: Any, opts: BuildOptions) -> float:
+    """KS distance of the section RTD (censored to the recording window when known) from the
+    DEM transit times; NaN without them."""
+    from twin_core.compartment.validation import compare_rtd, window_censored
+
+    if opts.transit_times is None:
+        return float("nan")
+    t = np.linspace(0.0, 8.0 * model.mean_residence_time_s_, 2001)
+    e = model.section_.impulse_response(t)
+    if opts.transit_window_s is not None:
+        e = window_censored(t, e, opts.transit_window_s)
+    return compare_rtd(t, e, samples=opts.transit_times)["ks"]
+
+
+def _available(fields: Any, flow_source: str) -> str:
+    """``flow_source`` if ``fields`` hold its data, else the best they hold."""
+    if flow_source == "transitions" and fields.transitions is None:
+        flow_source = "crossings"
+    if flow_source == "crossings" and not fields.has_crossings:
+        flow_source = "velocity"
+    return flow_source
+
+
 def build_blender_model(fields: Any, opts: BuildOptions, source: str = "fields") -> BuildResult:
     """Fields -> section model -> radial mixing -> blender model -> RTD validation (module
     docstring). ``source`` names the fields in the model and in errors."""
@@ -172,8 +237,12 @@ def build_blender_model(fields: Any, opts: BuildOptions, source: str = "fields")
     from twin_core.compartment.fields import mirror_axis
 
     t0 = time.perf_counter()
-    model = _section_model(fields, opts, source)
+    candidates = {
+        fs: _section_model(fields, opts, source, fs) for fs in flow_source_candidates(fields, opts)
+    }
     t_build = time.perf_counter() - t0
+    scores = {fs: _transit_ks(m, opts) for fs, m in candidates.items()}
+    model = candidates[min(scores, key=lambda fs: scores[fs])]
     if model.mirrored_:  # net flow towards -x: work in the model's orientation
         fields = mirror_axis(fields, model.axial_axis)
     cells = None  # every cell its own compartment: radial mixing and the surrogate
@@ -190,12 +259,7 @@ def build_blender_model(fields: Any, opts: BuildOptions, source: str = "fields")
     rsd_grid = cell_grid_rsd(fields, cells, opts, t_mix) if opts.rsd_source == "cells" else None
     fit = fit_rsd_decay(t_mix, rsd_grid) if rsd_grid is not None else fit_comp
     rpm_runs = {
-        float(r): CompartmentModel(
-            variables=opts.variables,
-            tol_fraction=opts.tol,
-            min_cells=opts.min_cells,
-            flow_source=opts.flow_source,
-        ).fit(f)
+        float(r): CompartmentModel(**zoning_kwargs(opts, _available(f, model.flow_source_))).fit(f)
         for r, f in opts.rpm_runs.items()
     }
     bm = to_blender_model(
@@ -213,6 +277,10 @@ def build_blender_model(fields: Any, opts: BuildOptions, source: str = "fields")
         "rsd_fit": fit,
         "rsd_fit_compartments_eq2": fit_comp,
         "blender_mean_residence_time_s": bm.mean_residence_time_s,
+        "flow_source_candidates": {
+            fs: {"n_compartments": m.n_compartments_, "censored_ks": scores[fs]}
+            for fs, m in candidates.items()
+        },
     }
     samples, validation = _validation_samples(opts, cells, fields)
     t_rtd = np.linspace(0.0, 8.0 * model.mean_residence_time_s_, 2001)

@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from twin_core.compartment.flows import wrap_directions
 from twin_core.compartment.model import CompartmentModel
 
 
@@ -30,8 +31,7 @@ def blender_model_fields(
             f"{model.throughput_kg_s_} kg/s): no RTD, no blender model"
         )
     per = model.periodic_
-    last = int(per.slice_index.max())
-    fwd = per.wrap & (per.slice_index[per.src] == last) & (per.slice_index[per.dst] == 0)
+    fwd, _ = wrap_directions(per.slice_index, per.src, per.dst, per.wrap)
     feed = np.bincount(per.dst[fwd], weights=per.rate[fwd], minlength=per.n)
     dis = np.bincount(per.src[fwd], weights=per.rate[fwd], minlength=per.n)
     inlet = np.flatnonzero(feed > 0)

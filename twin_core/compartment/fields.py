@@ -19,6 +19,10 @@ key                 shape            meaning
 ``duration_s``      ()               averaging duration (s), > 0
 ``particle_mass_kg``  ()             mass of one particle (kg), > 0
 ``periodic``        (3,)             bool, which axes are periodic
+``transition_*``    (m,) / ()        optional: cell-to-cell particle transitions at a lag
+                                     (``src``, ``dst`` flat cell indices, ``shift``
+                                     periods crossed, ``count``, ``lag_s``, ``origins``;
+                                     :mod:`twin_core.compartment.transitions`)
 ==================  ===============  ==================================================
 
 :func:`load_fields` reads and validates such a file, :func:`validate_fields` validates a
@@ -34,6 +38,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from twin_core.compartment.transitions import (
+    CellTransitions,
+    mirror_transitions,
+    validate_transitions,
+)
 
 REQUIRED_KEYS: tuple[str, ...] = (
     "x_edges",
@@ -63,6 +73,7 @@ class GridFields:
     particle_mass_kg: float
     periodic: tuple[bool, bool, bool]
     crossings: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    transitions: CellTransitions | None = None
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -124,6 +135,8 @@ class GridFields:
         if self.crossings is not None:
             for key, c in zip(CROSSING_KEYS, self.crossings):
                 d[key] = c
+        if self.transitions is not None:
+            d.update(self.transitions.to_dict())
         return d
 
 
@@ -239,6 +252,7 @@ def validate_fields(data: Mapping[str, Any]) -> GridFields:
         particle_mass_kg=particle_mass,
         periodic=periodic,  # type: ignore[arg-type]
         crossings=crossings,
+        transitions=validate_transitions(data, shape),  # type: ignore[arg-type]
     )
 
 
@@ -298,4 +312,7 @@ def mirror_axis(fields: GridFields, axis: int = 0) -> GridFields:
         particle_mass_kg=fields.particle_mass_kg,
         periodic=fields.periodic,
         crossings=crossings,
+        transitions=None
+        if fields.transitions is None
+        else mirror_transitions(fields.transitions, fields.shape, axis, fields.periodic[axis]),
     )

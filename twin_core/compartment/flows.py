@@ -124,6 +124,52 @@ def aggregate_flows(
     return FlowGraph(n, uk[:, 0], uk[:, 1], r, uk[:, 2].astype(bool), dropped)
 
 
+def aggregate_transitions(fields: GridFields, labels: np.ndarray) -> FlowGraph:
+    """Sum the cell-to-cell transition flows F_ij = m_p C_ij / (n_origins tau) of
+    ``fields.transitions`` (:mod:`twin_core.compartment.transitions`) between distinct
+    compartments of ``labels`` (-1 = empty); a transition with a period shift becomes a
+    ``wrap`` edge (its direction follows from the slices it joins, :func:`wrap_directions`).
+    Transitions inside one compartment are dropped; those touching an empty cell are counted
+    in ``dropped_kg_s``."""
+    tr = fields.transitions
+    if tr is None:
+        raise ValueError("fields: transition_* keys are required for flow_source='transitions'")
+    n = int(labels.max()) + 1
+    flat = labels.ravel()
+    s, d = flat[tr.src], flat[tr.dst]
+    rate = tr.flows_kg_s(fields.particle_mass_kg)
+    both = (s >= 0) & (d >= 0)
+    dropped = float(rate[~both].sum())
+    use = both & ((s != d) | (tr.shift != 0))
+    if np.any(use & (s == d)):
+        raise ValueError(
+            "a transition through the periodic face stays in one compartment: "
+            "compartments must not span the whole axial period"
+        )
+    key = np.stack([s[use], d[use], (tr.shift[use] != 0).astype(np.int64)], axis=1)
+    if key.size == 0:
+        z = np.zeros(0, dtype=np.int64)
+        return FlowGraph(n, z, z.copy(), np.zeros(0), np.zeros(0, bool), dropped)
+    uk, inv = np.unique(key, axis=0, return_inverse=True)
+    r = np.bincount(inv.ravel(), weights=rate[use], minlength=uk.shape[0])
+    return FlowGraph(n, uk[:, 0], uk[:, 1], r, uk[:, 2].astype(bool), dropped)
+
+
+def wrap_directions(
+    slice_index: np.ndarray, src: np.ndarray, dst: np.ndarray, wrap: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Forward and backward masks of the ``wrap`` edges of a periodic network: a forward
+    crossing of the periodic face goes from a higher axial slice to a lower one (e.g. the
+    last to the first), a backward one the other way; jumps are shorter than one period."""
+    w = np.asarray(wrap).astype(bool)
+    s, d = slice_index[src], slice_index[dst]
+    fwd = w & (s > d)
+    bwd = w & (s < d)
+    if np.any(w & (s == d)):
+        raise ValueError("a wrap edge must join two different axial slices")
+    return fwd, bwd
+
+
 def seed_flows(fields: GridFields, labels: np.ndarray, axial_axis: int = 0) -> FlowGraph:
     """Chapter 5 Eq. (1): F_ij(k) = A_ij(k) (v_i(k) - v_j(k)), for comparison only.
 
@@ -218,6 +264,30 @@ def incidence(n: int, src: np.ndarray, dst: np.ndarray) -> sp.csr_matrix:
     return sp.csr_matrix((vals, (rows, cols)), shape=(n, e))
 
 
+def _polish_active_set(
+    C: sp.csr_matrix, b: np.ndarray, f0: np.ndarray, winv: np.ndarray, act: np.ndarray
+) -> np.ndarray | None:
+    """min 1/2 sum w (f - f0)^2 s.t. C f = b on the edges ``act`` (the others 0): f_A =
+    f0_A + W^-1 C_A^T l with (C_A W^-1 C_A^T) l = b - C_A f0_A, repeated without the edges that
+    come out negative; None if it does not end with f >= 0 and C f = b (to 1e-12)."""
+    act = act.copy()
+    for _ in range(20):
+        idx = np.flatnonzero(act)
+        if idx.size == 0:
+            return None
+        CA = C[:, idx]
+        H = (CA @ sp.diags(winv[idx]) @ CA.T).tocsc()
+        rhs = b - CA @ f0[idx]
+        lam = spla.lsqr(H, rhs, atol=1e-16, btol=1e-16, iter_lim=20 * H.shape[0])[0]
+        fa = f0[idx] + winv[idx] * (CA.T @ lam)
+        if fa.min(initial=0.0) >= 0.0:
+            f = np.zeros(f0.size)
+            f[idx] = fa
+            return f if np.abs(C @ f - b).max(initial=0.0) <= 1e-12 else None
+        act[idx[fa < 0]] = False
+    return None
+
+
 def project_flows(
     C: sp.spmatrix,
     b: np.ndarray,
@@ -283,14 +353,24 @@ def project_flows(
         g = C @ f - bs
     resid = float(np.abs(g).max(initial=0.0))
     if resid > max(tol, 1e-10):
-        raise ValueError(
-            f"project_flows: no non-negative conserving flows found (residual {resid * scale:.3e})"
-        )
+        # the Newton steps stalled (a degenerate active set): solve the equality-constrained
+        # problem exactly on the active edges, dropping those that come out negative
+        polished = _polish_active_set(C, bs, f0s, winv, f > 0)
+        if polished is not None:
+            f = polished
+            resid = float(np.abs(C @ f - bs).max(initial=0.0))
+    stalled = resid > max(tol, 1e-10)
     # flows left at round-off level (< ``tiny`` of the largest) are structurally zero: a
     # 1e-17 kg/s trickle into a compartment without outflow would make it a trap of the
     # network; drop them and project again on the remaining edges (the set shrinks, so this
-    # terminates)
-    small = (f > 0) & (f < tiny * float(f.max(initial=0.0)))
+    # terminates).  Newton steps that stall at a kink (a flow that must end exactly at 0,
+    # residual ~ that flow) are finished the same way with flows below 1e-6 of the largest.
+    cut = 1e-6 if stalled else tiny
+    small = (f > 0) & (f < cut * float(f.max(initial=0.0)))
+    if stalled and not small.any():
+        raise ValueError(
+            f"project_flows: no non-negative conserving flows found (residual {resid * scale:.3e})"
+        )
     if small.any():
         keep = ~small & (f > 0)
         out = np.zeros(e)

@@ -28,12 +28,14 @@ from twin_core.compartment.fields import GridFields, mirror_axis
 from twin_core.compartment.flows import (
     FlowGraph,
     aggregate_flows,
+    aggregate_transitions,
     cell_flows_from_crossings,
     cell_flows_from_velocity,
     imbalance_report,
     incidence,
     project_flows,
     seed_flows,
+    wrap_directions,
 )
 from twin_core.compartment.network import (
     CompartmentNetwork,
@@ -44,12 +46,15 @@ from twin_core.compartment.network import (
 )
 from twin_core.compartment.zoning import (
     VARIABLES,
+    combine_zones,
     compartment_slices,
     field_variable,
     merge_small,
     occupied_mask,
     overlay_maps,
+    quantile_thresholds,
     sign_zones,
+    slice_classes,
     slice_components,
     threshold_zones,
 )
@@ -65,10 +70,16 @@ class CompartmentModel:
     tol_fraction : tolerance band of the sign zones, as a fraction of max |v| over occupied
         cells (seed: "+1 / 0 / -1").
     thresholds : optional mapping variable -> increasing thresholds (overrides sign zones).
+    quantile_classes : optional mapping variable -> number of classes of equal cell count
+        (thresholds at the quantiles of the occupied cells; e.g. ``{"mobility": 5}``).
+    connected : True (the seed): a compartment is a connected piece of one zone in a slice;
+        False: all cells of one zone in a slice form one compartment (kinetic lumping).
     empty_fraction : cells with occupancy <= this fraction of the maximum are empty (-2).
     min_cells : compartments smaller than this many cells are merged into their neighbour
         of the same slice sharing most faces (1 = no merging, the seed's maps).
-    flow_source : "crossings", "velocity" or "auto" (crossings when present).
+    flow_source : "transitions" (particle transitions at a lag, the Markov-state estimator of
+        :mod:`~twin_core.compartment.transitions`), "crossings", "velocity" or "auto" (the
+        first of these the fields hold).
     projection_weights : "uniform" (minimal Euclidean correction) or "relative".
     section_form : "transit" (record-passage first-passage network, default) or "closed"
         (closed-closed cut of the periodic face) for ``section_``.
@@ -100,6 +111,8 @@ class CompartmentModel:
         variables: Sequence[str] = ("vx", "vy", "vz"),
         tol_fraction: float = 0.1,
         thresholds: Mapping[str, Sequence[float]] | None = None,
+        quantile_classes: Mapping[str, int] | None = None,
+        connected: bool = True,
         empty_fraction: float = 0.01,
         min_cells: int = 3,
         flow_source: str = "auto",
@@ -113,6 +126,8 @@ class CompartmentModel:
         self.variables = tuple(variables)
         self.tol_fraction = tol_fraction
         self.thresholds = thresholds
+        self.quantile_classes = quantile_classes
+        self.connected = connected
         self.empty_fraction = empty_fraction
         self.min_cells = min_cells
         self.flow_source = flow_source
@@ -131,10 +146,13 @@ class CompartmentModel:
                 raise ValueError(f"variables must be among {VARIABLES}, got {v!r}")
         if not 0 <= self.tol_fraction < 1:
             raise ValueError(f"tol_fraction must be in [0, 1), got {self.tol_fraction}")
-        if self.flow_source not in ("auto", "crossings", "velocity"):
+        if self.flow_source not in ("auto", "transitions", "crossings", "velocity"):
             raise ValueError(
-                f"flow_source must be 'auto', 'crossings' or 'velocity', got {self.flow_source!r}"
+                "flow_source must be 'auto', 'transitions', 'crossings' or 'velocity', got "
+                f"{self.flow_source!r}"
             )
+        if self.flow_source == "transitions" and fields.transitions is None:
+            raise ValueError("fields: flow_source 'transitions' needs the transition_* keys")
         if self.section_form not in ("transit", "closed"):
             raise ValueError(
                 f"section_form must be 'transit' or 'closed', got {self.section_form!r}"
@@ -167,6 +185,9 @@ class CompartmentModel:
             values = field_variable(fields, v)
             if self.thresholds and v in self.thresholds:
                 zones[v] = threshold_zones(values, self.thresholds[v], mask)
+            elif self.quantile_classes and v in self.quantile_classes:
+                th = quantile_thresholds(values, mask, int(self.quantile_classes[v]))
+                zones[v] = threshold_zones(values, th, mask)
             else:
                 vmax = float(np.abs(values[mask]).max(initial=0.0))
                 zones[v] = sign_zones(values, self.tol_fraction * vmax, mask)
@@ -178,18 +199,29 @@ class CompartmentModel:
         ax = self.axial_axis
         source = self.flow_source
         if source == "auto":
-            source = "crossings" if fields.has_crossings else "velocity"
+            source = (
+                "transitions"
+                if fields.transitions is not None
+                else "crossings"
+                if fields.has_crossings
+                else "velocity"
+            )
         self.flow_source_ = source
         mirror = self.axial_direction == "-"
         if self.axial_direction == "auto":
             mask0 = occupied_mask(fields, self.empty_fraction)
-            cell0 = (
-                cell_flows_from_crossings(fields)
-                if source == "crossings"
-                else cell_flows_from_velocity(fields, mask0)
-            )
-            last = np.take(cell0[ax], fields.shape[ax] - 1, axis=ax)
-            mirror = float(last[..., 0].sum() - last[..., 1].sum()) < 0
+            if source == "transitions":
+                tr = fields.transitions
+                net = float(np.sum(tr.count * tr.shift))  # type: ignore[union-attr]
+                mirror = net < 0
+            else:
+                cell0 = (
+                    cell_flows_from_crossings(fields)
+                    if source == "crossings"
+                    else cell_flows_from_velocity(fields, mask0)
+                )
+                last = np.take(cell0[ax], fields.shape[ax] - 1, axis=ax)
+                mirror = float(last[..., 0].sum() - last[..., 1].sum()) < 0
         if mirror:
             fields = mirror_axis(fields, ax)
         self.mirrored_ = bool(mirror)
@@ -203,6 +235,8 @@ class CompartmentModel:
             lab = np.full(order.shape, -1, dtype=np.int32)
             lab[order] = np.arange(int(order.sum()), dtype=np.int32)
             labels = np.moveaxis(lab, 0, ax)
+        elif not self.connected:
+            labels = slice_classes(combine_zones(list(self.zones_.values())), axis=ax)
         else:
             labels = overlay_maps(list(self.maps_.values()), axis=ax)
             if self.min_cells > 1:
@@ -226,11 +260,15 @@ class CompartmentModel:
                 "(occupancy zero in occupied cells?)"
             )
 
-        if source == "crossings":
-            cell = cell_flows_from_crossings(fields)
+        if source == "transitions":
+            raw = aggregate_transitions(fields, labels)
         else:
-            cell = cell_flows_from_velocity(fields, self.mask_)
-        raw = aggregate_flows(cell, labels, fields.periodic, axial_axis=ax)
+            cell = (
+                cell_flows_from_crossings(fields)
+                if source == "crossings"
+                else cell_flows_from_velocity(fields, self.mask_)
+            )
+            raw = aggregate_flows(cell, labels, fields.periodic, axial_axis=ax)
         self.raw_flows_ = raw
         self.raw_imbalance_ = imbalance_report(raw)
         self.periodic_ = self._project(raw)
@@ -264,9 +302,7 @@ class CompartmentModel:
         through the periodic face (one extra equality row)."""
         n = raw.n
         C = incidence(n, raw.src, raw.dst)
-        last = int(self.slice_index_.max())
-        fwd = raw.wrap & (self.slice_index_[raw.src] == last)
-        bwd = raw.wrap & (self.slice_index_[raw.src] == 0)
+        fwd, bwd = wrap_directions(self.slice_index_, raw.src, raw.dst, raw.wrap)
         q_raw = float(raw.rate[fwd].sum() - raw.rate[bwd].sum())
         row = np.zeros(raw.src.size)
         row[fwd] = 1.0
@@ -277,6 +313,7 @@ class CompartmentModel:
         f = project_flows(C, b, f0, weights=_weights(f0, self.projection_weights))
         self.correction_rel_ = float(np.linalg.norm(f - f0) / max(np.linalg.norm(f0), 1e-300))
         keep = f > 0
+        keep &= _main_component(n, raw.src, raw.dst, keep, fwd, f)
         touched = np.zeros(n, dtype=bool)
         touched[raw.src[keep]] = True
         touched[raw.dst[keep]] = True
@@ -323,3 +360,20 @@ class CompartmentModel:
             "isolated_compartments": int(self.isolated_.size),
             "isolated_holdup_kg": self.isolated_holdup_kg_,
         }
+
+
+def _main_component(
+    n: int, src: np.ndarray, dst: np.ndarray, keep: np.ndarray, fwd: np.ndarray, f: np.ndarray
+) -> np.ndarray:
+    """Edges of the connected part of the network that carries the forward flow through the
+    periodic face.  A conserving network can hold other closed parts (e.g. a few bed cells
+    whose particles rattle across the periodic face and back): no tracer from the flow
+    reaches them, so they are stagnant holdup (``isolated_``), not a trap of the RTD."""
+    from scipy.sparse.csgraph import connected_components
+
+    adj = sp.csr_matrix((np.ones(int(keep.sum())), (src[keep], dst[keep])), shape=(n, n))
+    _, comp = connected_components(adj, directed=False)
+    w = np.bincount(comp[src[keep & fwd]], weights=f[keep & fwd], minlength=comp.max() + 1)
+    if not w.any():
+        return np.ones(src.size, dtype=bool)
+    return comp[src] == int(np.argmax(w))

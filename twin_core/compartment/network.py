@@ -26,7 +26,12 @@ import scipy.sparse as sp
 from scipy.linalg import expm
 from scipy.sparse.linalg import expm_multiply
 
-from twin_core.compartment.flows import incidence, node_balance, project_flows
+from twin_core.compartment.flows import (
+    incidence,
+    node_balance,
+    project_flows,
+    wrap_directions,
+)
 
 
 @dataclass
@@ -214,13 +219,7 @@ def periodic_throughput(net: CompartmentNetwork) -> float:
 
 
 def _wrap_directions(net: CompartmentNetwork) -> tuple[np.ndarray, np.ndarray]:
-    last = int(net.slice_index.max())
-    w = net.wrap.astype(bool)
-    fwd = w & (net.slice_index[net.src] == last) & (net.slice_index[net.dst] == 0)
-    bwd = w & (net.slice_index[net.src] == 0) & (net.slice_index[net.dst] == last)
-    if np.any(w & ~fwd & ~bwd):
-        raise ValueError("wrap edges must join the last and the first slice")
-    return fwd, bwd
+    return wrap_directions(net.slice_index, net.src, net.dst, net.wrap)
 
 
 def open_section(net: CompartmentNetwork, weights: str = "uniform") -> CompartmentNetwork:

@@ -21,7 +21,15 @@ from scipy import ndimage
 from twin_core.compartment.fields import GridFields
 
 EMPTY_ZONE = -2
-VARIABLES: tuple[str, ...] = ("vx", "vy", "vz", "speed", "solid_fraction", "occupancy")
+VARIABLES: tuple[str, ...] = (
+    "vx",
+    "vy",
+    "vz",
+    "speed",
+    "solid_fraction",
+    "occupancy",
+    "mobility",
+)
 
 
 def occupied_mask(fields: GridFields, empty_fraction: float = 0.01) -> np.ndarray:
@@ -42,7 +50,24 @@ def field_variable(fields: GridFields, name: str) -> np.ndarray:
         return fields.solid_fraction
     if name == "occupancy":
         return fields.occupancy
+    if name == "mobility":
+        return cell_mobility(fields)
     raise ValueError(f"variable must be one of {VARIABLES}, got {name!r}")
+
+
+def cell_mobility(fields: GridFields) -> np.ndarray:
+    """Escape rate of each cell (1/s) from the particle transitions at lag tau
+    (:mod:`twin_core.compartment.transitions`): k_i = sum_{j != i} C_ij / (n_origins N_i tau),
+    N_i the cell's mean particle count; 0 in empty cells.  A kinetic zoning variable: it
+    separates a bed that barely moves from the conveyed powder even where their mean
+    velocities are alike (the Markov-state lumping of slow and fast states)."""
+    tr = fields.transitions
+    if tr is None:
+        raise ValueError("fields: variable 'mobility' needs the transition_* keys")
+    out = np.bincount(tr.src, weights=tr.count, minlength=fields.occupancy.size)
+    occ = fields.occupancy.ravel()
+    k = np.where(occ > 0, out / (tr.origins * tr.lag_s * np.maximum(occ, 1e-300)), 0.0)
+    return k.reshape(fields.shape)
 
 
 def sign_zones(values: np.ndarray, tol: float, mask: np.ndarray) -> np.ndarray:
@@ -120,6 +145,33 @@ def slice_components(zones: np.ndarray, axis: int = 0) -> np.ndarray:
             labels[i][hit] = lab[hit] - 1 + nxt
             nxt += n
     return np.moveaxis(labels, 0, axis)
+
+
+def slice_classes(zones: np.ndarray, axis: int = 0) -> np.ndarray:
+    """Compartment map without connectivity: all cells of one zone value in one slice normal
+    to ``axis`` form one compartment (a kinetic lumping, where cells of like behaviour need
+    not touch).  Numbered slice by slice; -1 for empty cells."""
+    if zones.ndim != 3:
+        raise ValueError(f"zones must be 3-D, got shape {zones.shape}")
+    z = np.moveaxis(zones, axis, 0)
+    labels = np.full(z.shape, -1, dtype=np.int32)
+    nxt = 0
+    for i in range(z.shape[0]):
+        sl = z[i]
+        values = np.unique(sl[sl != EMPTY_ZONE])
+        for k, value in enumerate(values):
+            labels[i][sl == value] = nxt + k
+        nxt += values.size
+    return np.moveaxis(labels, 0, axis)
+
+
+def quantile_thresholds(values: np.ndarray, mask: np.ndarray, classes: int) -> list[float]:
+    """Thresholds splitting the occupied cells into ``classes`` classes of equal cell count
+    (duplicate quantiles removed)."""
+    if classes < 1:
+        raise ValueError(f"classes must be >= 1, got {classes}")
+    q = np.quantile(values[mask], np.linspace(0.0, 1.0, classes + 1)[1:-1]) if mask.any() else []
+    return [float(v) for v in np.unique(q)]
 
 
 def overlay_maps(maps: Sequence[np.ndarray], axis: int = 0) -> np.ndarray:
