@@ -150,7 +150,10 @@ def count_transitions(
     flat = np.empty(u.shape, dtype=np.int64)
     inside = np.empty(u.shape, dtype=bool)
     for k in range(nf):
-        flat[k], inside[k] = _cell_index(positions[k], edges, axial_axis)
+        # the axial cell from the unwrapped coordinate, so that cell and period agree exactly
+        pk = positions[k].copy()
+        pk[:, axial_axis] = e_ax[0] + (u[k] - e_ax[0]) - period[k] * length
+        flat[k], inside[k] = _cell_index(pk, edges, axial_axis)
     ax_idx = np.unravel_index(flat, shape)[axial_axis]
     s0, s1 = flat[:-lag_frames].ravel(), flat[lag_frames:].ravel()
     sh = (period[lag_frames:] - period[:-lag_frames]).ravel()
