@@ -14,7 +14,8 @@ Steps (each resumable; a step whose inputs are missing says so and the rest go o
    fields, the other speeds' fields giving the rpm law, validated against the run's own
    particle transit times (mean, variance, KS; censored to the recording window) ->
    ``DIR/models/blender_section_<speed>rpm.json``; ``--ship`` copies them to the package
-   (``twin_core/compartment/data``, the live twin's default blender).
+   (``--ship-dir``, default ``twin_core/compartment/data/seed_size``; the live twin's default
+   blender is ``twin_core/compartment/data``, see docs/compartment.md for why).
 3. **T95 of the fifteen indices** from the runs' frames (``blender_mixing``) beside the seed's
    Tables 8.2-8.4 -> ``DIR/t95_vs_seed.csv``.
 4. **The whole blender at the line** (12 kg/h, 100 rpm) against the seed's measured RTD
@@ -29,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -126,14 +126,17 @@ def step_models(args: argparse.Namespace, speeds: list[float]) -> dict[float, di
         }
         print(f"{r:g} rpm: {json.dumps(reports[r], default=float)}")
     if args.ship:
-        from twin_core.compartment.operating_point import SHIPPED_MODELS
+        from schemas.blender_model import BlenderModel
 
-        SHIPPED_MODELS.mkdir(exist_ok=True)
-        for old in SHIPPED_MODELS.glob("*.json"):
+        dest = args.ship_dir
+        dest.mkdir(parents=True, exist_ok=True)
+        for old in dest.glob("*.json"):
             old.unlink()
-        for r in speeds:
-            shutil.copy(out / f"blender_section_{r:g}rpm.json", SHIPPED_MODELS)
-        print(f"shipped {len(speeds)} models to {SHIPPED_MODELS.relative_to(ROOT)}")
+        for r in speeds:  # compact JSON: package data stays small
+            name = f"blender_section_{r:g}rpm.json"
+            model = BlenderModel.load(out / name)
+            (dest / name).write_text(model.model_dump_json())
+        print(f"shipped {len(speeds)} models to {dest}")
     return reports
 
 
@@ -225,7 +228,19 @@ def main() -> int:
     ap.add_argument("--skip-runs", action="store_true", help="only analyse finished runs")
     ap.add_argument("--no-t95", action="store_true", help="skip the mixing indices (slow)")
     ap.add_argument("--ship", action="store_true", help="copy the models into the package")
+    ap.add_argument(
+        "--ship-dir",
+        type=Path,
+        default=None,
+        help="where --ship writes (default: the package's seed-size models, "
+        "twin_core/compartment/data/seed_size; the default line models are in .../data)",
+    )
     args = ap.parse_args()
+    if args.ship_dir is None:
+        from twin_core.compartment.operating_point import SHIPPED_MODELS
+
+        args.ship_dir = SHIPPED_MODELS / "seed_size"
+
     args.runs.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     if not args.skip_runs:

@@ -41,6 +41,7 @@ from schemas.blender_model import BlenderModel
 from twin_core.compartment.blender_model import blender_model_rtd
 
 __all__ = [
+    "SEED_SIZE_MODELS",
     "SHIPPED_MODELS",
     "HoldupRule",
     "ModelTable",
@@ -51,9 +52,11 @@ __all__ = [
     "table_from_config",
 ]
 
-#: the section models shipped with the package (one JSON per blade speed), regenerated from the
-#: seed-size DEM campaign by ``benchmarks/blender_campaign.py``
+#: the section models shipped with the package (one JSON per blade speed: the 600-particle
+#: campaign's; the seed-size campaign's in ``SEED_SIZE_MODELS``, not the default: its section is
+#: filled 2.8 times deeper than the line, docs/compartment.md), by ``benchmarks/blender_campaign.py``
 SHIPPED_MODELS = Path(__file__).parent / "data"
+SEED_SIZE_MODELS = SHIPPED_MODELS / "seed_size"
 
 
 @dataclass(frozen=True)
