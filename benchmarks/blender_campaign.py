@@ -111,7 +111,11 @@ def step_models(args: argparse.Namespace, speeds: list[float]) -> dict[float, di
             transit_times=transit,
             transit_window_s=window,
         )
-        result = build_blender_model(fields[r], opts, source=f"{cfg.name} {r:g} rpm")
+        try:
+            result = build_blender_model(fields[r], opts, source=f"{cfg.name} {r:g} rpm")
+        except ValueError as exc:  # e.g. blades that do not convey: no RTD, no model
+            print(f"{r:g} rpm: no model: {exc}")
+            continue
         path = result.blender.save(out / f"blender_section_{r:g}rpm.json")
         rep = result.report
         reports[r] = {
@@ -254,7 +258,7 @@ def main() -> int:
         print(f"not finished: {missing} rpm (run again to resume)")
     reports = step_models(args, speeds)
     t95 = None if args.no_t95 else step_t95(args, speeds)
-    line = step_line(args)
+    line = step_line(args) if reports else {"skipped": "no section model"}
     report = ["# Blender campaign", "", f"speeds: {speeds}; not finished: {missing}", ""]
     report += ["## Section models vs their run's particle RTD", "", "```json"]
     report += [json.dumps(reports, indent=1, default=float), "```", ""]
