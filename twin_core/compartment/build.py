@@ -200,27 +200,15 @@ def _validation_samples(
     return None, None
 
 
-def _transit_ks(model: Any, opts: BuildOptions) -> float:
-    """KS distance of the section RTD (censored to the recording window when known) from the
-    DEM transit times; NaN without them."""
-    from twin_core.compartment.validation import compare_rtd, window_censored
+def _section_curves(model: Any, opts: BuildOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, section E(t), the E(t) compared with transits): the latter censored to the recording
+    window when DEM transit times and their window are given, else E(t) itself."""
+    from twin_core.compartment.validation import window_censored
 
-    if opts.transit_times is None:
-        return float("nan")
     t = np.linspace(0.0, 8.0 * model.mean_residence_time_s_, 2001)
     e = model.section_.impulse_response(t)
-    if opts.transit_window_s is not None:
-        e = window_censored(t, e, opts.transit_window_s)
-    return compare_rtd(t, e, samples=opts.transit_times)["ks"]
-
-
-def _available(fields: Any, flow_source: str) -> str:
-    """``flow_source`` if ``fields`` hold its data, else the best they hold."""
-    if flow_source == "transitions" and fields.transitions is None:
-        flow_source = "crossings"
-    if flow_source == "crossings" and not fields.has_crossings:
-        flow_source = "velocity"
-    return flow_source
+    censor = opts.transit_window_s is not None and opts.transit_times is not None
+    return t, e, window_censored(t, e, opts.transit_window_s) if censor else e
 
 
 def build_blender_model(fields: Any, opts: BuildOptions, source: str = "fields") -> BuildResult:
@@ -235,14 +223,22 @@ def build_blender_model(fields: Any, opts: BuildOptions, source: str = "fields")
         to_blender_model,
     )
     from twin_core.compartment.fields import mirror_axis
+    from twin_core.compartment.model import available_flow_source
 
     t0 = time.perf_counter()
     candidates = {
         fs: _section_model(fields, opts, source, fs) for fs in flow_source_candidates(fields, opts)
     }
     t_build = time.perf_counter() - t0
-    scores = {fs: _transit_ks(m, opts) for fs, m in candidates.items()}
-    model = candidates[min(scores, key=lambda fs: scores[fs])]
+    curves = {fs: _section_curves(m, opts) for fs, m in candidates.items()}
+    against = {  # each candidate against the DEM transit times (the choice and its report)
+        fs: compare_rtd(t, e_cmp, samples=opts.transit_times)
+        for fs, (t, _, e_cmp) in curves.items()
+        if opts.transit_times is not None
+    }
+    scores = {fs: against[fs]["ks"] if fs in against else float("nan") for fs in candidates}
+    chosen = min(scores, key=lambda fs: scores[fs])
+    model = candidates[chosen]
     if model.mirrored_:  # net flow towards -x: work in the model's orientation
         fields = mirror_axis(fields, model.axial_axis)
     cells = None  # every cell its own compartment: radial mixing and the surrogate
@@ -259,7 +255,9 @@ def build_blender_model(fields: Any, opts: BuildOptions, source: str = "fields")
     rsd_grid = cell_grid_rsd(fields, cells, opts, t_mix) if opts.rsd_source == "cells" else None
     fit = fit_rsd_decay(t_mix, rsd_grid) if rsd_grid is not None else fit_comp
     rpm_runs = {
-        float(r): CompartmentModel(**zoning_kwargs(opts, _available(f, model.flow_source_))).fit(f)
+        float(r): CompartmentModel(
+            **zoning_kwargs(opts, available_flow_source(f, model.flow_source_))
+        ).fit(f)
         for r, f in opts.rpm_runs.items()
     }
     bm = to_blender_model(
@@ -283,19 +281,15 @@ def build_blender_model(fields: Any, opts: BuildOptions, source: str = "fields")
         },
     }
     samples, validation = _validation_samples(opts, cells, fields)
-    t_rtd = np.linspace(0.0, 8.0 * model.mean_residence_time_s_, 2001)
-    e_sec = model.section_.impulse_response(t_rtd)
-    e_cmp = None
+    t_rtd, e_sec, e_cmp = curves[chosen]
     if samples is not None:
-        e_cmp = e_sec
-        if opts.transit_window_s is not None and opts.transit_times is not None:
-            from twin_core.compartment.validation import window_censored
-
-            e_cmp = window_censored(t_rtd, e_sec, opts.transit_window_s)
+        if e_cmp is not e_sec:
             validation = f"DEM transit times (window {opts.transit_window_s} s)"
         report["rtd_validation"] = {
             "against": validation,
-            **compare_rtd(t_rtd, e_cmp, samples=samples),
+            **(
+                against[chosen] if chosen in against else compare_rtd(t_rtd, e_cmp, samples=samples)
+            ),
         }
     return BuildResult(
         model=model,
@@ -306,7 +300,7 @@ def build_blender_model(fields: Any, opts: BuildOptions, source: str = "fields")
         e_section=e_sec,
         samples=samples,
         validation=validation,
-        e_censored=e_cmp if e_cmp is not e_sec else None,
+        e_censored=e_cmp if samples is not None and e_cmp is not e_sec else None,
         t_mix=t_mix,
         rsd_t=rsd_t,
         rsd_grid=rsd_grid,

@@ -114,8 +114,11 @@ def aggregate_flows(
             use = both & (s != d) & (f > 0)
             keys.append(np.stack([s[use], d[use], wrap[use].astype(np.int64)], axis=1))
             rates.append(f[use])
-    key = np.concatenate(keys).astype(np.int64)
-    rate = np.concatenate(rates)
+    return _summed_graph(n, np.concatenate(keys).astype(np.int64), np.concatenate(rates), dropped)
+
+
+def _summed_graph(n: int, key: np.ndarray, rate: np.ndarray, dropped: float) -> FlowGraph:
+    """FlowGraph of the rates summed per distinct (src, dst, wrap) row of ``key``."""
     if key.size == 0:
         z = np.zeros(0, dtype=np.int64)
         return FlowGraph(n, z, z.copy(), np.zeros(0), np.zeros(0, bool), dropped)
@@ -147,12 +150,7 @@ def aggregate_transitions(fields: GridFields, labels: np.ndarray) -> FlowGraph:
             "compartments must not span the whole axial period"
         )
     key = np.stack([s[use], d[use], (tr.shift[use] != 0).astype(np.int64)], axis=1)
-    if key.size == 0:
-        z = np.zeros(0, dtype=np.int64)
-        return FlowGraph(n, z, z.copy(), np.zeros(0), np.zeros(0, bool), dropped)
-    uk, inv = np.unique(key, axis=0, return_inverse=True)
-    r = np.bincount(inv.ravel(), weights=rate[use], minlength=uk.shape[0])
-    return FlowGraph(n, uk[:, 0], uk[:, 1], r, uk[:, 2].astype(bool), dropped)
+    return _summed_graph(n, key, rate[use], dropped)
 
 
 def wrap_directions(

@@ -54,7 +54,6 @@ from twin_core.compartment.zoning import (
     overlay_maps,
     quantile_thresholds,
     sign_zones,
-    slice_classes,
     slice_components,
     threshold_zones,
 )
@@ -199,13 +198,7 @@ class CompartmentModel:
         ax = self.axial_axis
         source = self.flow_source
         if source == "auto":
-            source = (
-                "transitions"
-                if fields.transitions is not None
-                else "crossings"
-                if fields.has_crossings
-                else "velocity"
-            )
+            source = available_flow_source(fields, "transitions")
         self.flow_source_ = source
         mirror = self.axial_direction == "-"
         if self.axial_direction == "auto":
@@ -236,7 +229,9 @@ class CompartmentModel:
             lab[order] = np.arange(int(order.sum()), dtype=np.int32)
             labels = np.moveaxis(lab, 0, ax)
         elif not self.connected:
-            labels = slice_classes(combine_zones(list(self.zones_.values())), axis=ax)
+            labels = slice_components(
+                combine_zones(list(self.zones_.values())), axis=ax, connected=False
+            )
         else:
             labels = overlay_maps(list(self.maps_.values()), axis=ax)
             if self.min_cells > 1:
@@ -360,6 +355,16 @@ class CompartmentModel:
             "isolated_compartments": int(self.isolated_.size),
             "isolated_holdup_kg": self.isolated_holdup_kg_,
         }
+
+
+def available_flow_source(fields: GridFields, flow_source: str) -> str:
+    """``flow_source`` if ``fields`` hold its data, else the next they hold in the order
+    transitions -> crossings -> velocity."""
+    if flow_source == "transitions" and fields.transitions is None:
+        flow_source = "crossings"
+    if flow_source == "crossings" and not fields.has_crossings:
+        flow_source = "velocity"
+    return flow_source
 
 
 def _main_component(

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from twin_core.compartment.fields import GridFields
+from twin_core.compartment.grid_index import cell_index
 from twin_core.compartment.network import CompartmentNetwork, closed_network, rsd
 
 
@@ -183,18 +184,7 @@ def grid_rsd_sampled(
 def cell_index_of_positions(positions: np.ndarray, fields: GridFields) -> np.ndarray:
     """Flat cell index (C order over (nx, ny, nz)) of particle positions; periodic axes are
     wrapped into the box, positions outside a closed axis are clipped to its end cells."""
-    pos = np.asarray(positions, dtype=float)
-    if pos.ndim != 2 or pos.shape[1] != 3:
-        raise ValueError(f"positions must have shape (n, 3), got {pos.shape}")
-    idx = []
-    for axis in range(3):
-        e = fields.edges[axis]
-        x = pos[:, axis]
-        if fields.periodic[axis]:
-            x = e[0] + np.mod(x - e[0], e[-1] - e[0])
-        idx.append(np.clip(np.searchsorted(e, x, side="right") - 1, 0, e.size - 2))
-    nx, ny, nz = fields.shape
-    return (idx[0] * ny + idx[1]) * nz + idx[2]
+    return cell_index(positions, fields.edges, fields.periodic)[0]
 
 
 def initial_from_particles(

@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from twin_core.compartment.grid_index import cell_index
+
 TRANSITION_KEYS: tuple[str, ...] = (
     "transition_src",
     "transition_dst",
@@ -90,25 +92,6 @@ def unwrap_periodic(x: np.ndarray, v: np.ndarray, dt: np.ndarray, length: float)
     return np.concatenate([x[:1], x[:1] + np.cumsum(d, axis=0)])
 
 
-def _cell_index(
-    pos: np.ndarray, edges: tuple[np.ndarray, np.ndarray, np.ndarray], axial_axis: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Flat cell index of each position (axial axis wrapped) and whether it lies in the grid."""
-    shape = tuple(e.size - 1 for e in edges)
-    idx = []
-    ok = np.ones(pos.shape[0], dtype=bool)
-    for a in range(3):
-        e = edges[a]
-        p = pos[:, a]
-        if a == axial_axis:
-            p = e[0] + np.mod(p - e[0], e[-1] - e[0])
-        i = np.searchsorted(e, p, side="right") - 1
-        if a != axial_axis:
-            ok &= (p >= e[0]) & (p <= e[-1])
-        idx.append(np.clip(i, 0, shape[a] - 1))
-    return np.ravel_multi_index(tuple(idx), shape), ok
-
-
 def count_transitions(
     times: np.ndarray,
     positions: np.ndarray,
@@ -147,13 +130,14 @@ def count_transitions(
     shape = tuple(e.size - 1 for e in edges)
     u = unwrap_periodic(positions[:, :, axial_axis], velocities[:, :, axial_axis], dt, length)
     period = np.floor((u - e_ax[0]) / length).astype(np.int64)
+    periodic = tuple(a == axial_axis for a in range(3))
     flat = np.empty(u.shape, dtype=np.int64)
     inside = np.empty(u.shape, dtype=bool)
     for k in range(nf):
         # the axial cell from the unwrapped coordinate, so that cell and period agree exactly
         pk = positions[k].copy()
         pk[:, axial_axis] = e_ax[0] + (u[k] - e_ax[0]) - period[k] * length
-        flat[k], inside[k] = _cell_index(pk, edges, axial_axis)
+        flat[k], inside[k] = cell_index(pk, edges, periodic)
     ax_idx = np.unravel_index(flat, shape)[axial_axis]
     s0, s1 = flat[:-lag_frames].ravel(), flat[lag_frames:].ravel()
     sh = (period[lag_frames:] - period[:-lag_frames]).ravel()

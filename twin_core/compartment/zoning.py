@@ -126,11 +126,13 @@ def combine_zones(zone_maps: Sequence[np.ndarray]) -> np.ndarray:
     return out
 
 
-def slice_components(zones: np.ndarray, axis: int = 0) -> np.ndarray:
-    """Compartment map: connected components of equal zone inside each slice normal to ``axis``.
+def slice_components(zones: np.ndarray, axis: int = 0, connected: bool = True) -> np.ndarray:
+    """Compartment map: connected components of equal zone inside each slice normal to ``axis``
+    (connectivity by faces, 4-neighbours in the slice); with ``connected=False`` all cells of
+    one zone in a slice form one compartment (a kinetic lumping, where cells of like behaviour
+    need not touch).
 
     Returns int32 labels 0..n-1 numbered slice by slice (slice 0 first), -1 for empty cells.
-    Connectivity is by faces (4-neighbours in the slice).
     """
     if zones.ndim != 3:
         raise ValueError(f"zones must be 3-D, got shape {zones.shape}")
@@ -140,28 +142,11 @@ def slice_components(zones: np.ndarray, axis: int = 0) -> np.ndarray:
     for i in range(z.shape[0]):
         sl = z[i]
         for value in np.unique(sl[sl != EMPTY_ZONE]):
-            lab, n = ndimage.label(sl == value)
+            same = sl == value
+            lab, n = ndimage.label(same) if connected else (same.astype(np.int32), 1)
             hit = lab > 0
             labels[i][hit] = lab[hit] - 1 + nxt
             nxt += n
-    return np.moveaxis(labels, 0, axis)
-
-
-def slice_classes(zones: np.ndarray, axis: int = 0) -> np.ndarray:
-    """Compartment map without connectivity: all cells of one zone value in one slice normal
-    to ``axis`` form one compartment (a kinetic lumping, where cells of like behaviour need
-    not touch).  Numbered slice by slice; -1 for empty cells."""
-    if zones.ndim != 3:
-        raise ValueError(f"zones must be 3-D, got shape {zones.shape}")
-    z = np.moveaxis(zones, axis, 0)
-    labels = np.full(z.shape, -1, dtype=np.int32)
-    nxt = 0
-    for i in range(z.shape[0]):
-        sl = z[i]
-        values = np.unique(sl[sl != EMPTY_ZONE])
-        for k, value in enumerate(values):
-            labels[i][sl == value] = nxt + k
-        nxt += values.size
     return np.moveaxis(labels, 0, axis)
 
 
