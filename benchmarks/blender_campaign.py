@@ -220,6 +220,9 @@ def _markdown(table: pd.DataFrame) -> str:
 
 
 def main() -> int:
+    from twin_core.dem.threads import prefer_openmp
+
+    prefer_openmp()  # before the first parallel region (twin_core.dem.threads)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--runs", type=Path, required=True, help="campaign directory")
     ap.add_argument(

@@ -45,6 +45,9 @@ def build(name: str):
 
 
 def main() -> None:
+    from twin_core.dem.threads import prefer_openmp
+
+    prefer_openmp()  # before the first parallel region (twin_core.dem.threads)
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--threads", default="1,2")

@@ -32,6 +32,9 @@ CONFIGS = Path(__file__).resolve().parents[1] / "twin_core" / "scenes" / "config
 
 
 def main() -> None:
+    from twin_core.dem.threads import prefer_openmp
+
+    prefer_openmp()  # before the first parallel region (twin_core.dem.threads)
     ap = argparse.ArgumentParser()
     ap.add_argument("--config", default=str(CONFIGS / "silo_small.yaml"))
     ap.add_argument("--ratios", default="5,6.5,8", help="orifice diameter / particle diameter")

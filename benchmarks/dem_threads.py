@@ -64,6 +64,9 @@ def phase(label: str, sim, steps: int, repeat: int) -> dict[str, float]:
 
 
 def main() -> int:
+    from twin_core.dem.threads import prefer_openmp
+
+    prefer_openmp()  # before the first parallel region (twin_core.dem.threads)
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--n", type=int, default=6000)
     ap.add_argument("--steps", type=int, default=3000)

@@ -85,6 +85,9 @@ def measure(sim: Simulation, steps: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from twin_core.dem.threads import prefer_openmp
+
+    prefer_openmp()  # before the first parallel region (twin_core.dem.threads)
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, nargs="+", default=[6000, 50000])
     ap.add_argument("--steps", type=int, default=2000)

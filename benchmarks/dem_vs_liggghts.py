@@ -370,6 +370,9 @@ def describe(r: BlenderRun) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from twin_core.dem.threads import prefer_openmp
+
+    prefer_openmp()  # before the first parallel region (twin_core.dem.threads)
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=6000)
     ap.add_argument("--case", default="bed", choices=["bed", "drum", "blender"])

@@ -46,8 +46,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         cfg = load_scene(args.scene)
     except ValueError as exc:
         raise ValueError(f"invalid scene, {args.scene}: {exc}") from None
-    from twin_core.dem.threads import adaptive_threads
+    from twin_core.dem.threads import adaptive_threads, prefer_openmp
 
+    prefer_openmp()
     policy = contextlib.nullcontext()
     if args.threads == "auto":
         policy = adaptive_threads()

@@ -3,7 +3,8 @@
 ``run_campaign(design, run, results_csv)`` calls ``run(params, seed) -> {response: value}``
 once per design row, on a standard executor:
 
-* default: a local process pool (``concurrent.futures.ProcessPoolExecutor``);
+* default: a local process pool (``concurrent.futures.ProcessPoolExecutor``; workers started
+  by ``forkserver``, safe whatever threading layer the parent process has run);
 * ``scheduler="tcp://host:8786"``: a Dask distributed cluster (``dask.distributed.Client``);
 * ``executor=...``: any ``concurrent.futures.Executor`` (e.g. a thread pool).
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import math
+import multiprocessing
 import os
 import time
 import traceback
@@ -179,7 +181,10 @@ def run_campaign(
                     record(fut.result(), futs[fut])
         else:
             own = executor is None
-            ex = executor or ProcessPoolExecutor(max_workers=n_workers or os.cpu_count() or 1)
+            ex = executor or ProcessPoolExecutor(
+                max_workers=n_workers or os.cpu_count() or 1,
+                mp_context=multiprocessing.get_context("forkserver"),
+            )
             try:
                 futs = {ex.submit(_execute, run, rid, params, s): params for rid, params, s in todo}
                 for fut in as_completed(futs):

@@ -18,11 +18,15 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import os
 from collections.abc import Iterator
 
 import numpy as np
 
-__all__ = ["ThreadChooser", "adaptive_threads", "current_policy"]
+__all__ = ["OPENMP_FIRST", "ThreadChooser", "adaptive_threads", "current_policy", "prefer_openmp"]
+
+#: numba threading layers in the order a DEM process asks for them
+OPENMP_FIRST: tuple[str, ...] = ("omp", "tbb", "workqueue")
 
 _POLICY: contextvars.ContextVar[str] = contextvars.ContextVar("dem_thread_policy", default="fixed")
 
@@ -35,6 +39,30 @@ def adaptive_threads() -> Iterator[None]:
         yield
     finally:
         _POLICY.reset(token)
+
+
+def prefer_openmp() -> tuple[str, ...] | None:
+    """Ask numba for its OpenMP threading layer first (then TBB, then workqueue) in this
+    process; returns the order set, or None where it is left alone: the environment chooses
+    (``NUMBA_THREADING_LAYER`` or ``NUMBA_THREADING_LAYER_PRIORITY``) or a layer has started.
+
+    Why: on two idle cores the engine's two threads run 2.0x one thread under OpenMP and 1.5x
+    under TBB (``benchmarks/dem_threads.py``, docs/dem_engine.md): OpenMP's static schedule
+    keeps each half of the particles on the same core from step to step. For processes whose
+    work is the DEM (``twin dem``, the dem service, the campaign and benchmark scripts), called
+    at their start. GNU OpenMP is not fork-safe: a process that has run a parallel region under
+    it must not fork a child that runs one (the calibration campaign's process pool starts its
+    workers with ``forkserver``).
+    """
+    import numba
+    from numba.np.ufunc import parallel
+
+    if "NUMBA_THREADING_LAYER" in os.environ or "NUMBA_THREADING_LAYER_PRIORITY" in os.environ:
+        return None
+    if parallel._is_initialized:
+        return None
+    numba.config.THREADING_LAYER_PRIORITY = list(OPENMP_FIRST)
+    return OPENMP_FIRST
 
 
 def current_policy() -> str:
