@@ -43,8 +43,9 @@ def adaptive_threads() -> Iterator[None]:
 
 def prefer_openmp() -> tuple[str, ...] | None:
     """Ask numba for its OpenMP threading layer first (then TBB, then workqueue) in this
-    process; returns the order set, or None where it is left alone: the environment chooses
-    (``NUMBA_THREADING_LAYER`` or ``NUMBA_THREADING_LAYER_PRIORITY``) or a layer has started.
+    process and the processes it starts (``NUMBA_THREADING_LAYER_PRIORITY``); returns the order
+    set, or None where it is left alone: the environment chooses (``NUMBA_THREADING_LAYER`` or
+    ``NUMBA_THREADING_LAYER_PRIORITY``) or a layer has started.
 
     Why: on two idle cores the engine's two threads run 2.0x one thread under OpenMP and 1.5x
     under TBB (``benchmarks/dem_threads.py``, docs/dem_engine.md): OpenMP's static schedule
@@ -62,6 +63,8 @@ def prefer_openmp() -> tuple[str, ...] | None:
     if parallel._is_initialized:
         return None
     numba.config.THREADING_LAYER_PRIORITY = list(OPENMP_FIRST)
+    # child interpreters (campaign workers, subprocesses) read it from the environment
+    os.environ["NUMBA_THREADING_LAYER_PRIORITY"] = " ".join(OPENMP_FIRST)
     return OPENMP_FIRST
 
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, threading_layer
 
 
 @njit(parallel=True)
@@ -15,5 +15,7 @@ def _twice_sum(a):
 
 
 def parallel_sum(params: dict, seed: int) -> dict:
-    """``{"total": 2 n}`` from a parallel region over ``n`` ones."""
-    return {"total": float(_twice_sum(np.ones(int(params["n"]))))}
+    """``{"total": 2 n, "openmp": 1 under numba's OpenMP layer, else 0}`` from a parallel
+    region over ``n`` ones."""
+    total = float(_twice_sum(np.ones(int(params["n"]))))
+    return {"total": total, "openmp": float(threading_layer() == "omp")}

@@ -61,7 +61,7 @@ def test_prefer_openmp_picks_openmp_unless_the_environment_chooses():
 def test_campaign_pool_runs_parallel_work_after_the_parent_used_openmp(tmp_path):
     """A campaign started by a process that has run a parallel region under OpenMP (a DEM run,
     then its analysis campaign): the workers run parallel regions too and finish (with a
-    forked pool, GNU OpenMP aborts them)."""
+    forked pool, GNU OpenMP aborts them), under OpenMP too (inherited through the environment)."""
     if not _openmp_available():
         pytest.skip("numba's OpenMP layer cannot load on this machine")
     code = f"""
@@ -75,11 +75,11 @@ def test_campaign_pool_runs_parallel_work_after_the_parent_used_openmp(tmp_path)
     print(parallel_sum({{"n": 10}}, 0)["total"])
     out = run_campaign(pd.DataFrame({{"run": ["a", "b"], "n": [100, 1000]}}), parallel_sum,
                        r"{tmp_path / "res.csv"}", n_workers=2, progress=False)
-    print(list(out["status"]), list(out["total"]))
+    print(list(out["status"]), list(out["total"]), list(out["openmp"]))
     from numba import threading_layer
     print(threading_layer())
     """
     out = _run(code)
     assert out.returncode == 0, out.stderr[-2000:]
     lines = out.stdout.strip().splitlines()
-    assert lines[-3:] == ["20.0", "['ok', 'ok'] [200.0, 2000.0]", "omp"]
+    assert lines[-3:] == ["20.0", "['ok', 'ok'] [200.0, 2000.0] [1.0, 1.0]", "omp"]
