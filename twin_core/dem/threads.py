@@ -48,7 +48,7 @@ def prefer_openmp() -> tuple[str, ...] | None:
     ``NUMBA_THREADING_LAYER_PRIORITY``) or a layer has started.
 
     Why: on two idle cores the engine's two threads run 2.0x one thread under OpenMP and 1.5x
-    under TBB (``benchmarks/dem_threads.py``, docs/dem_engine.md): OpenMP's static schedule
+    under TBB (``benchmarks/dem_threading_layers.py``, docs/dem_engine.md): OpenMP's static schedule
     keeps each half of the particles on the same core from step to step. For processes whose
     work is the DEM (``twin dem``, the dem service, the campaign and benchmark scripts), called
     at their start. GNU OpenMP is not fork-safe: a process that has run a parallel region under
