@@ -89,7 +89,10 @@ class BlenderGeometry(StrictModel):
     width: Positive = 0.080
     height: Positive = 0.080
     shaft_radius: Positive = 0.006
-    blade_length: Positive = 0.026
+    blade_length: Positive | None = Field(
+        None,
+        description="paddle length from the shaft, m (None: to tip_clearance from the trough)",
+    )
     blade_width: Positive = 0.012
     blade_thickness: Positive = 0.003
     tip_clearance: Positive = 0.003

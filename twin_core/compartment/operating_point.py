@@ -53,8 +53,9 @@ __all__ = [
 ]
 
 #: the section models shipped with the package (one JSON per blade speed: the 600-particle
-#: campaign's; the seed-size campaign's in ``SEED_SIZE_MODELS``, not the default: its section is
-#: filled 2.8 times deeper than the line, docs/compartment.md), by ``benchmarks/blender_campaign.py``
+#: campaign's; the seed-size campaign's in ``SEED_SIZE_MODELS``, not the default: their 26 mm
+#: paddles leave a slow annulus above the trough, docs/compartment.md), by
+#: ``benchmarks/blender_campaign.py``
 SHIPPED_MODELS = Path(__file__).parent / "data"
 SEED_SIZE_MODELS = SHIPPED_MODELS / "seed_size"
 

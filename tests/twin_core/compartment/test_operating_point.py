@@ -135,9 +135,9 @@ def test_shipped_models_and_their_axial_dispersion_equivalent():
     assert mean_ad == pytest.approx(table.mean_residence_time_s(point), rel=0.03)
 
 
-def test_seed_size_models_ship_beside_the_default_and_show_the_deep_bed():
-    """The seed-size campaign's models (transition flows) load from their own directory, one per
-    blade speed, and their whole blender at the line is the documented one (docs/compartment.md:
+def test_seed_size_models_ship_beside_the_default_and_show_the_slow_bed():
+    """The seed-size campaign's models (first geometry: 26 mm paddles over a slow bed; transition
+    flows) load from their own directory, one per blade speed, and their whole blender at the line is the documented one (docs/compartment.md:
     var/mean^2 0.84 with the holdup tuned to Table 6.2, against 0.100 measured; the reason they
     are not the default) while the default's is narrower than the measured RTD."""
     seed = load_models(SEED_SIZE_MODELS)

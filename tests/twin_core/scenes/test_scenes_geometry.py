@@ -71,6 +71,27 @@ def test_blender_section_dimensions(tmp_path):
     assert len(t) == geo.rotating[0][0].n_triangles
 
 
+def _rotor_reach(geo) -> float:
+    """Largest distance of a rotor vertex from the shaft axis (y = 0, z = R)."""
+    v = geo.rotating[0][0].vertices
+    return float(np.max(np.hypot(v[:, 1], v[:, 2] - geo.info["radius"])))
+
+
+def test_blender_blades_reach_the_tip_clearance_unless_shorter():
+    """By default the paddles reach to ``tip_clearance`` from the trough (their tip corners, a
+    paddle being a pitched plate of finite width, reach a little further out than its
+    centreline); a given ``blade_length`` is kept when shorter and capped when longer; a shaft
+    and clearance that leave no room raise."""
+    R = 0.04
+    full = _rotor_reach(g.blender_section())
+    assert R - 0.003 - 1e-9 <= full < R  # tips within the clearance of the trough, inside it
+    short = _rotor_reach(g.blender_section(blade_length=0.026))
+    assert 0.006 + 0.026 - 1e-9 <= short < 0.006 + 0.026 + 0.002  # 8 mm above the bottom
+    assert _rotor_reach(g.blender_section(blade_length=0.05)) == pytest.approx(full)
+    with pytest.raises(ValueError, match="tip_clearance"):
+        g.blender_section(shaft_radius=0.03, tip_clearance=0.011)
+
+
 def test_drawdown_and_silo():
     """Seed 3.2.2: 224.4 x 51 x 306 mm frame; shelf area (X - w) Y, plate area w Y; silo floor
     annulus (polygon) area n sin(2 pi / n)(R^2 - r0^2) / 2 and plug n sin(2 pi/n) r0^2 / 2."""
