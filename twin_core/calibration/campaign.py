@@ -4,7 +4,8 @@
 once per design row, on a standard executor:
 
 * default: a local process pool (``concurrent.futures.ProcessPoolExecutor``; workers started
-  by ``forkserver``, safe whatever threading layer the parent process has run);
+  by ``forkserver``, safe whatever threading layer the parent process has run; a worker ends
+  itself when the campaign process is killed);
 * ``scheduler="tcp://host:8786"``: a Dask distributed cluster (``dask.distributed.Client``);
 * ``executor=...``: any ``concurrent.futures.Executor`` (e.g. a thread pool).
 
@@ -21,6 +22,7 @@ import csv
 import math
 import multiprocessing
 import os
+import threading
 import time
 import traceback
 from collections.abc import Callable, Mapping
@@ -41,6 +43,30 @@ def run_seed(campaign_seed: int, run_id: Any) -> int:
     """Seed of one run from the campaign seed and the run id (order independent)."""
     key = [int(campaign_seed)] + [ord(ch) for ch in str(run_id)]
     return int(np.random.SeedSequence(key).generate_state(1)[0])
+
+
+def _parent_alive(pid: int) -> bool:
+    """Whether process ``pid`` still exists (signal 0 checks without sending anything)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists but not ours, or no such check on this platform
+        return True
+    return True
+
+
+def _exit_with_parent(parent_pid: int, poll_s: float = 0.5) -> None:
+    """Pool initializer: a daemon thread ends the worker once the campaign process is gone
+    (killed before it could stop its pool), so no worker runs on as an orphan; the run it was
+    doing is not recorded and is redone on resume."""
+
+    def watch() -> None:
+        while _parent_alive(parent_pid):
+            time.sleep(poll_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="campaign-parent-watch", daemon=True).start()
 
 
 def _execute(run: RunFunction, run_id: Any, params: dict[str, float], seed: int) -> dict[str, Any]:
@@ -184,6 +210,8 @@ def run_campaign(
             ex = executor or ProcessPoolExecutor(
                 max_workers=n_workers or os.cpu_count() or 1,
                 mp_context=multiprocessing.get_context("forkserver"),
+                initializer=_exit_with_parent,
+                initargs=(os.getpid(),),
             )
             try:
                 futs = {ex.submit(_execute, run, rid, params, s): params for rid, params, s in todo}

@@ -993,7 +993,8 @@ class Simulation:
     # ----------------------------------------------------------------------------------------
     def save_checkpoint(self, path: str | Path) -> Path:
         """Write the complete state (``.npz``) so that :meth:`load_checkpoint` continues
-        bit-identically (same thread-count-independent results)."""
+        bit-identically (same thread-count-independent results); written to a temporary file
+        first and renamed, so a process killed while writing leaves the previous checkpoint."""
         path = Path(path)
         n = self._n
         c = int(self._cur[0])
@@ -1028,8 +1029,10 @@ class Simulation:
             "removed": self._removed, "counters": self._counters,
             "dom": self._dom, "per": self._per, "grav": self._grav,
         }  # fmt: skip
-        with open(path, "wb") as fh:
+        tmp = path.with_name(path.name + ".tmp")  # a run killed while writing keeps the last one
+        with open(tmp, "wb") as fh:
             np.savez(fh, config=np.array(json.dumps(cfg)), **arrays)
+        tmp.replace(path)
         return path
 
     @classmethod

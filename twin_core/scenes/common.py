@@ -258,10 +258,13 @@ def run_segments(
 
 
 def save_checkpoint(sim: Any, state: RunState, run_dir: Path) -> None:
-    sim.save_checkpoint(run_dir / "checkpoint.npz")
+    """The engine's checkpoint and the run's state, each written to a temporary file and
+    renamed (the state's rename right after the checkpoint's), so that a run killed while
+    writing resumes from the previous pair."""
     tmp = run_dir / "state.pkl.tmp"
     with tmp.open("wb") as fh:
         pickle.dump(state, fh)
+    sim.save_checkpoint(run_dir / "checkpoint.npz")
     tmp.replace(run_dir / "state.pkl")
 
 

@@ -126,3 +126,47 @@ def test_bad_campaign_inputs(tmp_path):
     except ImportError:
         with pytest.raises(ValueError, match="pyarrow"):
             export_results(d, tmp_path / "x.parquet")
+
+
+def test_workers_end_when_the_campaign_process_is_killed(tmp_path):
+    """A campaign process killed outright (SIGKILL: no chance to stop its pool) leaves no
+    worker running its long run: each worker watches the campaign process and ends itself."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[3]
+    code = (
+        "import pandas as pd\n"
+        "from twin_core.calibration.campaign import run_campaign\n"
+        "from tests.twin_core.calibration.campaign_work import sleepy_run\n"
+        "run_campaign(pd.DataFrame({'run': ['a'], 'sleep_s': [120.0]}), sleepy_run,\n"
+        f"             r'{tmp_path / 'res.csv'}', n_workers=1, progress=False)\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(root), CAMPAIGN_TEST_PID_DIR=str(tmp_path))
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=root, env=env)
+    try:
+        deadline = time.monotonic() + 120.0
+        while not list(tmp_path.glob("*.pid")) and time.monotonic() < deadline:
+            assert proc.poll() is None, "the campaign ended before its run started"
+            time.sleep(0.1)
+        (pid_file,) = tmp_path.glob("*.pid")
+        worker = int(pid_file.read_text())
+        os.kill(worker, 0)  # the worker is running its 120 s run
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+        deadline = time.monotonic() + 10.0
+        alive = True
+        while alive and time.monotonic() < deadline:
+            try:
+                os.kill(worker, 0)
+                time.sleep(0.1)
+            except ProcessLookupError:
+                alive = False
+        assert not alive, "the worker outlived the killed campaign process"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
