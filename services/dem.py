@@ -78,9 +78,6 @@ class DemService(Service):
         self._worker: threading.Thread | None = None
 
     def setup(self) -> None:
-        from twin_core.dem.threads import prefer_openmp
-
-        prefer_openmp()  # the engine's threading layer, before its first parallel region
         key = keys.dem_requests(self.spec.name)
         self._queryable = self.session.declare_queryable(
             key, zenoh.handlers.Callback(self._on_query, lambda: None)
