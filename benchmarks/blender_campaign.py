@@ -244,9 +244,9 @@ def main() -> int:
     )
     args = ap.parse_args()
     if args.ship_dir is None:
-        from twin_core.compartment.operating_point import SHIPPED_MODELS
+        from twin_core.compartment.operating_point import SEED_SIZE_MODELS
 
-        args.ship_dir = SHIPPED_MODELS / "seed_size"
+        args.ship_dir = SEED_SIZE_MODELS
 
     args.runs.mkdir(parents=True, exist_ok=True)
     t0 = time.time()

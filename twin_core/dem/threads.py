@@ -51,9 +51,10 @@ def prefer_openmp() -> tuple[str, ...] | None:
     under TBB (``benchmarks/dem_threading_layers.py``, docs/dem_engine.md): OpenMP's static schedule
     keeps each half of the particles on the same core from step to step. For processes whose
     work is the DEM (``twin dem``, the campaign and benchmark scripts), called at their start
-    (not the live twin's dem service: there it stopped the service answering, docs/dem_engine.md). GNU OpenMP is not fork-safe: a process that has run a parallel region under
-    it must not fork a child that runs one (the calibration campaign's process pool starts its
-    workers with ``forkserver``).
+    (not the live twin's dem service: there it stopped the service answering,
+    docs/dem_engine.md). GNU OpenMP is not fork-safe: a process that has run a parallel region
+    under it must not fork a child that runs one (the calibration campaign's process pool
+    starts its workers with ``forkserver``).
     """
     import numba
     from numba.np.ufunc import parallel

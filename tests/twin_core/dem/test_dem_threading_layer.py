@@ -5,6 +5,7 @@ in a fresh interpreter, because numba fixes its layer at the first parallel regi
 
 from __future__ import annotations
 
+import functools
 import os
 import subprocess
 import sys
@@ -42,7 +43,9 @@ LAYER = """
 """
 
 
+@functools.cache
 def _openmp_available() -> bool:
+    """Whether numba's OpenMP layer loads here (one fresh interpreter, asked once)."""
     out = _run(LAYER, NUMBA_THREADING_LAYER="omp")
     return out.returncode == 0 and out.stdout.split()[-1] == "omp"
 
