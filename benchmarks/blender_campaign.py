@@ -14,8 +14,8 @@ Steps (each resumable; a step whose inputs are missing says so and the rest go o
    fields, the other speeds' fields giving the rpm law, validated against the run's own
    particle transit times (mean, variance, KS; censored to the recording window) ->
    ``DIR/models/blender_section_<speed>rpm.json``; ``--ship`` copies them to the package
-   (``--ship-dir``, default ``twin_core/compartment/data/seed_size``; the live twin's default
-   blender is ``twin_core/compartment/data``, see docs/compartment.md for why).
+   (``--ship-dir``, default ``twin_core/compartment/data``: the live twin's default blender;
+   docs/compartment.md says which models are kept for study in its subfolders).
 3. **T95 of the fifteen indices** from the runs' frames (``blender_mixing``) beside the seed's
    Tables 8.2-8.4 -> ``DIR/t95_vs_seed.csv``.
 4. **The whole blender at the line** (12 kg/h, 100 rpm) against the seed's measured RTD
@@ -239,14 +239,14 @@ def main() -> int:
         "--ship-dir",
         type=Path,
         default=None,
-        help="where --ship writes (default: the package's seed-size models, "
-        "twin_core/compartment/data/seed_size; the default line models are in .../data)",
+        help="where --ship writes (default: the live twin's default models, "
+        "twin_core/compartment/data; models kept for study go to its subfolders)",
     )
     args = ap.parse_args()
     if args.ship_dir is None:
-        from twin_core.compartment.operating_point import SEED_SIZE_MODELS
+        from twin_core.compartment.operating_point import SHIPPED_MODELS
 
-        args.ship_dir = SEED_SIZE_MODELS
+        args.ship_dir = SHIPPED_MODELS
 
     args.runs.mkdir(parents=True, exist_ok=True)
     t0 = time.time()

@@ -41,7 +41,8 @@ from schemas.blender_model import BlenderModel
 from twin_core.compartment.blender_model import blender_model_rtd
 
 __all__ = [
-    "SEED_SIZE_MODELS",
+    "BLADES26_MODELS",
+    "INTERIM_MODELS",
     "SHIPPED_MODELS",
     "HoldupRule",
     "ModelTable",
@@ -52,12 +53,16 @@ __all__ = [
     "table_from_config",
 ]
 
-#: the section models shipped with the package (one JSON per blade speed: the 600-particle
-#: campaign's; the seed-size campaign's in ``SEED_SIZE_MODELS``, not the default: their 26 mm
-#: paddles leave a slow annulus above the trough, docs/compartment.md), by
-#: ``benchmarks/blender_campaign.py``
+#: the section models the live twin uses by default (one JSON per blade speed), built by
+#: ``benchmarks/blender_campaign.py`` from the seed-size DEM section (``blender.yaml``: 6,000
+#: particles, 20 s, paddles to 3 mm from the trough; docs/compartment.md)
 SHIPPED_MODELS = Path(__file__).parent / "data"
-SEED_SIZE_MODELS = SHIPPED_MODELS / "seed_size"
+#: kept for study, not the default: the 600-particle runs of the first geometry
+#: (``blender_interim.yaml``; the default before the seed-size campaign) ...
+INTERIM_MODELS = SHIPPED_MODELS / "interim"
+#: ... and the seed-size runs of the first geometry (``blender_blades26.yaml``: 26 mm paddles
+#: whose tips leave an unswept, slow annulus above the trough)
+BLADES26_MODELS = SHIPPED_MODELS / "blades26"
 
 
 @dataclass(frozen=True)

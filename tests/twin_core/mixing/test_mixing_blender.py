@@ -81,13 +81,16 @@ def test_axial_flow_follows_the_blade_push_and_grows_with_speed(runs):
     Spread on 12 seeds: |flow| 0.0262 +- 0.0019 kg/s at 50 rpm (min 0.0230), 0.0561 +- 0.0020 at
     100 rpm; the sign agreed in all 24 runs (13.7 sd from zero); |flow_100| - |flow_50| =
     0.0298 +- 0.0025 kg/s (min 0.0257), 11.9 sd. False failure over the ensemble < 1e-20 for a
-    normal spread; the margins leave room for much heavier tails."""
+    normal spread; the margins leave room for much heavier tails. Whole-section transits in the
+    1.2 s window: 116-191 per run at 100 rpm, but 0-9 at 50 rpm (most transits there are longer
+    than the window: seeds 0-2 on one machine gave 9, 5, 0), so only the 100 rpm count is a
+    per-run claim."""
     for run in runs:
         r50, r100 = _results(run, 50), _results(run, 100)
         for r in (r50, r100):
             assert r["blade_push_sign_x"] != 0
             assert r["net_axial_flow_sign"] == r["blade_push_sign_x"], run
-            assert r["transit_count"] > 0
+        assert r100["transit_count"] > 0, run
         assert abs(r100["net_axial_flow_kg_s"]) > abs(r50["net_axial_flow_kg_s"]), run
 
 
