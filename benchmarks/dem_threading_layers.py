@@ -34,7 +34,9 @@ def one(state: str, steps: int, warm: int, threads: int) -> None:
     from twin_core.dem.simulation import Simulation
 
     numba.set_num_threads(threads)
-    sim = Simulation.load_checkpoint(state) if state else make_sim(6000, "bed")
+    # as many scatter chunks as the machine's threads, whatever run saved the state
+    chunks = numba.config.NUMBA_NUM_THREADS
+    sim = Simulation.load_checkpoint(state, pair_chunks=chunks) if state else make_sim(6000, "bed")
     sim.thread_policy = "fixed"
     sim.run(warm * sim.dt)
     t0 = time.perf_counter()

@@ -303,7 +303,8 @@ def run_ours_blender(
     """Our engine on the saved blender state, ``nwarm`` untimed steps then ``steps`` timed
     (wall time, translational KE sampled every ``nthermo`` steps as LIGGGHTS' thermo)."""
     numba.set_num_threads(threads)
-    sim = Simulation.load_checkpoint(state)
+    # as many scatter chunks as the machine's threads, whatever run saved the state
+    sim = Simulation.load_checkpoint(state, pair_chunks=numba.config.NUMBA_NUM_THREADS)
     sim.pair_scheme = scheme
     sim.thread_policy = "fixed"
     n0 = sim.n_particles

@@ -343,6 +343,25 @@ def test_checkpoint_restart_is_bit_identical(tmp_path):
     assert np.array_equal(a.omega, b.omega)
 
 
+def test_a_checkpoint_keeps_its_scatter_chunks_unless_told(tmp_path):
+    """A run saved with one scatter chunk resumes with one (its own summation order: bit-identical
+    to the uninterrupted run) unless ``pair_chunks`` re-chunks it; the re-chunked run sums the
+    same forces in another order (1e-12 of the largest force, as the chunk test below)."""
+    a = _bed(pair_scheme="scatter")
+    a.pair_chunks = 1
+    a.run(0.03)
+    a.save_checkpoint(tmp_path / "c.npz")
+    same = Simulation.load_checkpoint(tmp_path / "c.npz")
+    two = Simulation.load_checkpoint(tmp_path / "c.npz", pair_chunks=2)
+    assert same.pair_chunks == 1 and two.pair_chunks == 2
+    for sim in (a, same, two):
+        sim.run(sim.dt)
+    assert np.array_equal(a.pos, same.pos)
+    assert two._acc.shape[0] == 2
+    scale = np.abs(a.vel).max()
+    assert np.allclose(two.vel, a.vel, rtol=0, atol=1e-12 * scale)
+
+
 def test_results_do_not_depend_on_thread_count():
     """Each particle sums its forces in one fixed order whatever the thread count: the chunked
     scatter with 3 chunks gives bit-identical trajectories on one and on two threads, and with
