@@ -1056,7 +1056,7 @@ class Simulation:
             gravity=a["grav"], materials=MaterialTable.from_dict(cfg["materials"]),
             dt=cfg["dt"] if cfg["dt_user"] else None, dt_fraction=cfg["dt_fraction"],
             skin=cfg["skin"], seed=cfg["seed"], pair_scheme=cfg.get("pair_scheme", "auto"),
-            pair_chunks=pair_chunks or cfg.get("pair_chunks"),
+            pair_chunks=cfg.get("pair_chunks") if pair_chunks is None else pair_chunks,
         )  # fmt: skip
         n = a["P"].shape[0]
         kown = max(a["nb"].shape[1], 1)
