@@ -30,6 +30,8 @@ import math
 
 from numba import njit
 
+from .space import FMA
+
 __all__ = [
     "add_wall_contact",
     "clear_history",
@@ -119,9 +121,10 @@ def hertz_mindlin(
             ftx *= s
             fty *= s
             ftz *= s
-            hx = -(ftx + ct * vtx) / st
-            hy = -(fty + ct * vty) / st
-            hz = -(ftz + ct * vtz) / st
+            inv_st = -1.0 / st
+            hx = (ftx + ct * vtx) * inv_st
+            hy = (fty + ct * vty) * inv_st
+            hz = (ftz + ct * vtz) * inv_st
     return fn, ftx, fty, ftz, hx, hy, hz
 
 
@@ -135,10 +138,11 @@ def rolling_torque(mur, fn, r_eff, rwx, rwy, rwz, dt_inv_i):
         wm = math.sqrt(rwx * rwx + rwy * rwy + rwz * rwz)
         if wm > 0.0:
             tr = mur * fn * r_eff
-            tcap = wm / dt_inv_i
-            if tr > tcap:
-                tr = tcap
-            return -tr * rwx / wm, -tr * rwy / wm, -tr * rwz / wm
+            if tr * dt_inv_i > wm:
+                s = 1.0 / dt_inv_i  # the cap: tr = wm / dt_inv_i
+            else:
+                s = tr / wm
+            return -s * rwx, -s * rwy, -s * rwz
     return 0.0, 0.0, 0.0
 
 
@@ -149,7 +153,7 @@ def hertz_energy(e_star, r_eff, delta):
     return 8.0 / 15.0 * e_star * math.sqrt(r_eff) * delta**2.5
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FMA)
 def wall_contact(
     vx, vy, vz, wx, wy, wz, r, m, inv_i, mat_p,
     nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,

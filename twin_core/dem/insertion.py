@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from .partition import axis_cells, cell_of
+from .partition import axis_span, cell_of, wrap_cell
 from .space import min_image
 
 __all__ = [
@@ -145,16 +145,18 @@ def _push(cell, m, x, y, z, r, pos, rad, head, nxt):
 
 
 @njit(cache=True, inline="always")
-def _overlaps_stored(x, y, z, r, cx, cy, cz, nc, head, nxt, pos, rad, dom, per, cxs, cys, czs):
+def _overlaps_stored(x, y, z, r, cx, cy, cz, nc, head, nxt, pos, rad, dom, per):
     """Whether the sphere (x, y, z, r) in cell (cx, cy, cz) of the ``nc`` grid overlaps a sphere
     stored in its own or a neighbouring cell (minimum image on periodic axes)."""
-    mx = axis_cells(cx, nc[0], per[0] != 0, cxs)
-    my = axis_cells(cy, nc[1], per[1] != 0, cys)
-    mz = axis_cells(cz, nc[2], per[2] != 0, czs)
+    fx, mx = axis_span(cx, nc[0], per[0] != 0)
+    fy, my = axis_span(cy, nc[1], per[1] != 0)
+    fz, mz = axis_span(cz, nc[2], per[2] != 0)
     for a in range(mx):
         for b in range(my):
             for e in range(mz):
-                q = head[(cxs[a] * nc[1] + cys[b]) * nc[2] + czs[e]]
+                cx_, cy_ = wrap_cell(fx + a, nc[0]), wrap_cell(fy + b, nc[1])
+                cell = (cx_ * nc[1] + cy_) * nc[2] + wrap_cell(fz + e, nc[2])
+                q = head[cell]
                 while q >= 0:
                     dx = min_image(pos[q, 0] - x, dom[6], per[0] != 0)
                     dy = min_image(pos[q, 1] - y, dom[7], per[1] != 0)
@@ -180,9 +182,6 @@ def rsa_place(ex_pos, ex_r, cand, cand_r, n_want, dom, per, cs):
     pos = np.empty((tot, 3))
     rad = np.empty(tot)
     acc = np.empty(n_want, np.int64)
-    cxs = np.empty(3, np.int64)
-    cys = np.empty(3, np.int64)
-    czs = np.empty(3, np.int64)
     for m in range(ne):
         x, y, z = ex_pos[m, 0], ex_pos[m, 1], ex_pos[m, 2]
         cx = cell_of(x, dom[0], csx, nc[0], per[0] != 0)
@@ -198,8 +197,7 @@ def rsa_place(ex_pos, ex_r, cand, cand_r, n_want, dom, per, cs):
         cx = cell_of(x, dom[0], csx, nc[0], per[0] != 0)
         cy = cell_of(y, dom[1], csy, nc[1], per[1] != 0)
         cz = cell_of(z, dom[2], csz, nc[2], per[2] != 0)
-        if _overlaps_stored(x, y, z, r, cx, cy, cz, nc, head, nxt, pos, rad, dom, per, cxs, cys,
-                            czs):  # fmt: skip
+        if _overlaps_stored(x, y, z, r, cx, cy, cz, nc, head, nxt, pos, rad, dom, per):
             continue
         _push((cx * nc[1] + cy) * nc[2] + cz, m, x, y, z, r, pos, rad, head, nxt)
         m += 1

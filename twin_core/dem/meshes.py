@@ -118,7 +118,7 @@ def _pick(k, a, b):
     return a if k == 0 else b
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def nearest_image_contact(px, py, pz, tri, dom, per):
     """Image q of point p nearest to triangle ``tri`` and its closest point c on the triangle:
     (qx, qy, qz, cx, cy, cz, feature), feature as in :func:`closest_point_triangle`.

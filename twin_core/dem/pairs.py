@@ -39,7 +39,7 @@ from .contact import (
     pair_coefficients,
     rolling_torque,
 )
-from .space import min_image
+from .space import FMA, min_image
 
 __all__ = [
     "add_pair_energy",
@@ -101,7 +101,7 @@ def _pair_contact(P, IA, hist, pt, i, k, j, dx, dy, dz, d2, rs, dt):
     )
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=FMA)
 def pair_pass(n, P, F, IA, nb, nown, hist, pf, pt, dom, per, dt):
     """Pass 1 (parallel scheme): evaluate each owned pair once; write ``pf[i, k]`` and update
     ``hist[i, k]``.
@@ -164,7 +164,7 @@ def chunk_bounds(n, nown, bounds):
         c += 1
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=FMA)
 def pair_scatter(n, P, IA, nb, nown, hist, acc, bounds, pt, dom, per, dt):
     """Scatter scheme: evaluate each owned pair once and add its force and torques straight to
     both particles' sums (Newton's third law), without the pair buffer of :func:`pair_pass`.

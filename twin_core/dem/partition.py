@@ -29,29 +29,29 @@ from numba import njit, prange
 from .meshes import max_tri_disp2, nearest_image_contact, update_mesh
 from .space import min_image
 
-__all__ = ["axis_cells", "cell_of", "rebuild", "rebuild_due"]
+__all__ = ["axis_span", "cell_of", "rebuild", "rebuild_due", "wrap_cell"]
 
 
-@njit(cache=True)
-def axis_cells(c, ncell, periodic, out):
-    """Neighbouring cell indices of cell c along one axis (deduplicated) into ``out`` (3,);
-    returns their count."""
+@njit(cache=True, inline="always")
+def axis_span(c, ncell, periodic):
+    """Neighbouring cells of cell c along one axis (deduplicated), as (first, count): the cells
+    are ``first``, ``first + 1``, ... (count of them; c-1, c, c+1 in that order), each wrapped
+    once by :func:`wrap_cell` on a periodic axis, clipped to the grid on a closed axis, and all
+    cells once on a periodic axis of fewer than 3 cells. Scalars only: it is called per particle
+    in parallel loops, where a small array would be an allocation."""
     if periodic:
         if ncell < 3:
-            for a in range(ncell):
-                out[a] = a
-            return ncell
-        out[0] = (c - 1) % ncell
-        out[1] = c
-        out[2] = (c + 1) % ncell
-        return 3
-    m = 0
-    for d in (-1, 0, 1):
-        cc = c + d
-        if 0 <= cc < ncell:
-            out[m] = cc
-            m += 1
-    return m
+            return 0, ncell
+        return (c - 1 if c > 0 else ncell - 1), 3
+    first = c - 1 if c > 0 else 0
+    last = c + 1 if c + 1 < ncell else ncell - 1
+    return first, last - first + 1
+
+
+@njit(cache=True, inline="always")
+def wrap_cell(c, ncell):
+    """Cell index ``c < 2 ncell`` wrapped into the grid (a compare, not an integer division)."""
+    return c - ncell if c >= ncell else c
 
 
 @njit(cache=True)
@@ -115,10 +115,9 @@ def _sort_by_cell(n, P, rm, dom, per, cs, ncx, ncy, ncz):
 
 
 @njit(cache=True, inline="always")
-def _append_carried(nb_new, hist_new, i, cnt, partner, nb_old, n_old, hist_old, row, key, sign):
-    """List ``partner`` in slot (i, cnt) of the new list with the tangential spring of the old
-    list's slot (row, key) times ``sign`` (zero when that pair was not listed)."""
-    nb_new[i, cnt] = partner
+def _carry_history(hist_new, i, cnt, nb_old, n_old, hist_old, row, key, sign):
+    """Tangential spring of the new list's slot (i, cnt): the old list's slot (row, key) times
+    ``sign`` (zero when that pair was not listed)."""
     h0 = 0.0
     h1 = 0.0
     h2 = 0.0
@@ -144,35 +143,38 @@ def _build_own(
     p0, p1, p2 = per[0] != 0, per[1] != 0, per[2] != 0
     over = 0
     for i in prange(n_new):
-        cxs = np.empty(3, np.int64)
-        cys = np.empty(3, np.int64)
-        czs = np.empty(3, np.int64)
         oi = perm[i]
         xi, yi, zi, ri = P[oi, 0], P[oi, 1], P[oi, 2], P[oi, 9]
         c = cell_of_new[i]
-        mx = axis_cells(c // (ncz * ncy), ncx, p0, cxs)
-        my = axis_cells((c // ncz) % ncy, ncy, p1, cys)
-        mz = axis_cells(c % ncz, ncz, p2, czs)
+        fx, mx = axis_span(c // (ncz * ncy), ncx, p0)
+        fy, my = axis_span((c // ncz) % ncy, ncy, p1)
+        fz, mz = axis_span(c % ncz, ncz, p2)
         cnt = 0
         for a in range(mx):
+            ca = wrap_cell(fx + a, ncx)
             for b in range(my):
-                for e in range(mz):
-                    cell = (cxs[a] * ncy + cys[b]) * ncz + czs[e]
-                    for j in range(cstart[cell], cstart[cell + 1]):
-                        if j <= i:
-                            continue
+                base = (ca * ncy + wrap_cell(fy + b, ncy)) * ncz
+                # the cells along z that do not wrap are consecutive rows: one range
+                nz_run = mz if fz + mz <= ncz else 1
+                for e in range(mz - nz_run + 1):
+                    c0 = base + wrap_cell(fz + e, ncz)
+                    # rows are sorted by cell: partners j > i only; each candidate is
+                    # written to the next free slot, kept when within the cut-off (no branch
+                    # on the distance: it is taken about one time in six, unpredictably)
+                    for j in range(max(cstart[c0], i + 1), cstart[c0 + nz_run]):
                         oj = perm[j]
                         dx = min_image(P[oj, 0] - xi, l0, p0)
                         dy = min_image(P[oj, 1] - yi, l1, p1)
                         dz = min_image(P[oj, 2] - zi, l2, p2)
                         cut = ri + P[oj, 9] + skin
-                        if dx * dx + dy * dy + dz * dz < cut * cut:
-                            if cnt < kmax:
-                                # where the owner changed, the spring changes sign
-                                row, key, sign = (oi, oj, 1.0) if oi < oj else (oj, oi, -1.0)
-                                _append_carried(nb_new, hist_new, i, cnt, j, nb_old, nown_old,
-                                                hist_old, row, key, sign)  # fmt: skip
-                            cnt += 1
+                        nb_new[i, min(cnt, kmax - 1)] = j
+                        cnt += dx * dx + dy * dy + dz * dz < cut * cut
+        for k in range(min(cnt, kmax)):
+            j = nb_new[i, k]
+            oj = perm[j]
+            # where the owner changed, the spring changes sign
+            row, key, sign = (oi, oj, 1.0) if oi < oj else (oj, oi, -1.0)
+            _carry_history(hist_new, i, k, nb_old, nown_old, hist_old, row, key, sign)
         nown_new[i] = min(cnt, kmax)
         if cnt > kmax:
             over = max(over, cnt)
@@ -219,8 +221,8 @@ def _build_tri(
             qx, qy, qz, cx, cy, cz, _ = nearest_image_contact(x, y, z, tri, dom, per)
             if (qx - cx) ** 2 + (qy - cy) ** 2 + (qz - cz) ** 2 < (r + skin) ** 2:
                 if cnt < kmax:
-                    _append_carried(tri_nb_new, thist_new, i, cnt, q, tri_nb_old, ntri_old,
-                                    thist_old, oi, q, 1.0)  # fmt: skip
+                    tri_nb_new[i, cnt] = q
+                    _carry_history(thist_new, i, cnt, tri_nb_old, ntri_old, thist_old, oi, q, 1.0)
                 cnt += 1
         ntri_new[i] = min(cnt, kmax)
         if cnt > kmax:

@@ -20,9 +20,14 @@ from __future__ import annotations
 
 from numba import njit
 
-__all__ = ["NPC", "min_image"]
+__all__ = ["FMA", "NPC", "min_image"]
 
 NPC = 13  # columns of P
+
+#: fast-math flags of the engine's per-step kernels: only fused multiply-add (``a * b + c`` in
+#: one rounding; deterministic for a given build and CPU, so the sums stay the same for any thread
+#: count), none of the flags that assume no NaN or infinity (walls use infinite windows).
+FMA = {"contract"}
 
 
 @njit(cache=True, inline="always")
