@@ -16,7 +16,8 @@ m* = m):
 - elastic energy of the normal spring: ``(8/15) E* sqrt(R*) delta^(5/2)``.
 
 The coefficients come from the material-pair tables ``pt`` (:meth:`MaterialTable.tables`):
-``pt[0]`` E*, ``pt[1]`` G*, ``pt[2]`` mu_s, ``pt[3]`` mu_r, ``pt[4]`` damping factor d.
+``pt[0]`` E*, ``pt[1]`` G*, ``pt[2]`` mu_s, ``pt[3]`` mu_r, ``pt[4]`` damping factor d,
+``pt[5]`` sqrt(4 G*/E*) (the tangential dashpot's ratio to the normal one).
 
 References: Hertz (1882); Mindlin & Deresiewicz (1953); Tsuji, Tanaka & Ishida (1992), Powder
 Technol. 71, 239; Brilliantov et al. (1996), Phys. Rev. E 53, 5382 (LAMMPS ``gran/hertz/history``);
@@ -58,19 +59,21 @@ def clear_history(h, i, k):
 @njit(cache=True, inline="always")
 def pair_coefficients(pt, mat_a, mat_b):
     """Coefficients of the material pair (a, b) from the tables ``pt``:
-    (E*, G*, mu_s, mu_r, damping factor d)."""
+    (E*, G*, mu_s, mu_r, damping factor d, sqrt(4 G*/E*))."""
     return (
         pt[0, mat_a, mat_b],
         pt[1, mat_a, mat_b],
         pt[2, mat_a, mat_b],
         pt[3, mat_a, mat_b],
         pt[4, mat_a, mat_b],
+        pt[5, mat_a, mat_b],
     )
 
 
 @njit(cache=True, inline="always")
 def hertz_mindlin(
-    e_star, g_star, mu, dmp, r_eff, m_eff, delta, nx, ny, nz, rvx, rvy, rvz, hx, hy, hz, dt,
+    e_star, g_star, mu, dmp, tn_ratio, r_eff, m_eff, delta, nx, ny, nz, rvx, rvy, rvz, hx, hy, hz,
+    dt,
 ):  # fmt: skip
     """Normal and tangential contact force (module docstring; Hertz-Mindlin no-slip, Tsuji
     damping, Coulomb-truncated tangential spring as LAMMPS ``gran/hertz/history``).
@@ -80,7 +83,8 @@ def hertz_mindlin(
     ``v_t dt``, ``F_t = -S_t xi - d sqrt(S_t m*) v_t``, ``S_t = 8 G* sqrt(R* delta)``, and if
     ``|F_t| > mu F_n`` scaled to the limit with ``xi = -(F_t + d sqrt(S_t m*) v_t) / S_t``.
     ``rv``: relative velocity at the contact point (first body minus second), split into
-    ``v_n = rv . n`` and ``v_t = rv - v_n n``; the dashpots use the same (half-step) velocities
+    ``v_n = rv . n`` and ``v_t = rv - v_n n``; ``tn_ratio = sqrt(4 G*/E*)`` gives the tangential
+    dashpot ``d sqrt(S_t m*)`` from the normal one. The dashpots use the same (half-step) velocities
     as the springs (a velocity predicted from the previous force, v + F/m dt/2, is unstable for
     strongly damped, many-contact beds). Returns (F_n, F_t x, y, z, new spring x, y, z).
     """
@@ -91,7 +95,8 @@ def hertz_mindlin(
     sq = math.sqrt(r_eff * delta)
     sn = 2.0 * e_star * sq
     st = 8.0 * g_star * sq
-    fn = _TWO_THIRDS * sn * delta + dmp * math.sqrt(sn * m_eff) * vn
+    cn = dmp * math.sqrt(sn * m_eff)
+    fn = _TWO_THIRDS * sn * delta + cn * vn
     if fn < 0.0:
         fn = 0.0
     h2 = hx * hx + hy * hy + hz * hz
@@ -109,7 +114,7 @@ def hertz_mindlin(
     hx += vtx * dt
     hy += vty * dt
     hz += vtz * dt
-    ct = dmp * math.sqrt(st * m_eff)
+    ct = cn * tn_ratio  # d sqrt(S_t m*) = d sqrt(S_n m*) sqrt(4 G*/E*)
     ftx = -st * hx - ct * vtx
     fty = -st * hy - ct * vty
     ftz = -st * hz - ct * vtz
@@ -167,14 +172,14 @@ def wall_contact(
     ``hist`` (3,) is the tangential spring, updated in place. Compiled once and called by the
     plane, cylinder and mesh loops (not inlined: it is the largest piece of their code).
     """
-    e_star, g_star, mu, mur, dmp = pair_coefficients(pt, mat_p, mat_w)
+    e_star, g_star, mu, mur, dmp, tn_ratio = pair_coefficients(pt, mat_p, mat_w)
     c = r - delta
     # contact point velocity of the sphere minus wall velocity
     rvx = vx + c * (wy * nz - wz * ny) - vwx
     rvy = vy + c * (wz * nx - wx * nz) - vwy
     rvz = vz + c * (wx * ny - wy * nx) - vwz
     fn, ftx, fty, ftz, hx, hy, hz = hertz_mindlin(
-        e_star, g_star, mu, dmp, r, m, delta, nx, ny, nz, rvx, rvy, rvz,
+        e_star, g_star, mu, dmp, tn_ratio, r, m, delta, nx, ny, nz, rvx, rvy, rvz,
         hist[0], hist[1], hist[2], dt,
     )  # fmt: skip
     hist[0] = hx

@@ -271,9 +271,12 @@ class MaterialTable:
         )
 
     def tables(self) -> np.ndarray:
-        """Dense pair tables, shape (5, n, n): E*, G*, mu_s, mu_r, damping factor d."""
+        """Dense pair tables, shape (6, n, n): E*, G*, mu_s, mu_r, damping factor d, and
+        ``sqrt(4 G*/E*)``, the ratio of the tangential to the normal dashpot of a Hertz-Mindlin
+        contact (``sqrt(S_t m*) / sqrt(S_n m*)`` with S_t = 8 G* a, S_n = 2 E* a: one square
+        root per contact saved)."""
         n = self.n
-        out = np.zeros((5, n, n))
+        out = np.zeros((6, n, n))
         corrected = self.damping == "corrected"
         for a in range(n):
             for b in range(n):
@@ -284,6 +287,7 @@ class MaterialTable:
                 out[2, a, b] = mu
                 out[3, a, b] = mur
                 out[4, a, b] = damping_coefficient(round(e, 12), corrected)
+                out[5, a, b] = math.sqrt(4.0 * out[1, a, b] / out[0, a, b])
         return out
 
     def to_dict(self) -> dict:

@@ -59,14 +59,15 @@ def _pair_contact(P, IA, hist, pt, i, k, j, dx, dy, dz, d2, rs, dt):
     ri = P[i, 9]
     rj = P[j, 9]
     mi = P[i, 10]
-    e_star, g_star, mu, mur, dmp = pair_coefficients(pt, IA[i, 1], IA[j, 1])
+    e_star, g_star, mu, mur, dmp, tn_ratio = pair_coefficients(pt, IA[i, 1], IA[j, 1])
     d = math.sqrt(d2)
     inv_d = 1.0 / d
     nx, ny, nz = dx * inv_d, dy * inv_d, dz * inv_d
     delta = rs - d
     mj = P[j, 10]
-    r_star = ri * rj / rs
-    m_star = mi * mj / (mi + mj)
+    inv = 1.0 / (rs * (mi + mj))  # one division for R* = ri rj / rs and m* = mi mj / (mi + mj)
+    r_star = ri * rj * (mi + mj) * inv
+    m_star = mi * mj * rs * inv
     ci = ri - 0.5 * delta
     cj = rj - 0.5 * delta
     wxi, wyi, wzi = P[i, 6], P[i, 7], P[i, 8]
@@ -78,7 +79,7 @@ def _pair_contact(P, IA, hist, pt, i, k, j, dx, dy, dz, d2, rs, dt):
     rvy = P[i, 4] - P[j, 4] + (az * nx - ax * nz)
     rvz = P[i, 5] - P[j, 5] + (ax * ny - ay * nx)
     fn, ftx, fty, ftz, hx, hy, hz = hertz_mindlin(
-        e_star, g_star, mu, dmp, r_star, m_star, delta, nx, ny, nz, rvx, rvy, rvz,
+        e_star, g_star, mu, dmp, tn_ratio, r_star, m_star, delta, nx, ny, nz, rvx, rvy, rvz,
         hist[i, k, 0], hist[i, k, 1], hist[i, k, 2], dt,
     )  # fmt: skip
     hist[i, k, 0] = hx
