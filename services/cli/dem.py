@@ -1,4 +1,4 @@
-"""``twin dem run SCENE.yaml [--out DIR] [--resume] [--threads auto|N]``: run a DEM scene of the seed
+"""``twin dem run SCENE.yaml [--out DIR] [--resume [--pair-chunks N]] [--threads auto|N]``: run a DEM scene of the seed
 (blender section, drawdown test, feeder, silo) from its config file and write results, fields,
 frames, STL geometry and PNG figures. ``twin dem warmup``: compile the engine's kernels into
 numba's cache, saying what it compiles (once after installing; ``twin dem run`` runs it first)."""
@@ -23,6 +23,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--out", type=Path, default=None, help="output directory (default out/dem/<name>)"
     )
     r.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
+    r.add_argument(
+        "--pair-chunks",
+        default=None,
+        help="with --resume: split the pair forces into N chunks (one per thread that should "
+        "share them) instead of the saved run's count, e.g. 2 to continue a one-thread run on "
+        "two threads (not bit-identical to the uninterrupted run); a new run uses the thread "
+        "count",
+    )
     r.add_argument(
         "--threads",
         default="auto",
@@ -64,11 +72,29 @@ def cmd_run(args: argparse.Namespace) -> int:
         if threads < 1:
             raise ValueError(f"--threads must be >= 1, got {threads}")
         numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    pair_chunks = _pair_chunks(args.pair_chunks, args.resume)
     out = args.out or Path("out") / "dem" / cfg.name
     with policy:
-        summary = run_scene(cfg, out, resume=args.resume, progress=not args.no_progress)
+        summary = run_scene(
+            cfg, out, resume=args.resume, progress=not args.no_progress, pair_chunks=pair_chunks
+        )
     print(json.dumps(summary, indent=1, default=str))
     return 0
+
+
+def _pair_chunks(value: str | None, resume: bool) -> int | None:
+    """The ``--pair-chunks`` value: None (keep the saved count) or an integer >= 1."""
+    if value is None:
+        return None
+    if not resume:
+        raise ValueError(f"--pair-chunks applies to --resume only, got --pair-chunks {value}")
+    try:
+        k = int(value)
+    except ValueError:
+        raise ValueError(f"--pair-chunks must be an integer >= 1, got {value!r}") from None
+    if k < 1:
+        raise ValueError(f"--pair-chunks must be an integer >= 1, got {k}")
+    return k
 
 
 def cmd_warmup(args: argparse.Namespace) -> int:

@@ -20,7 +20,8 @@ pytestmark = pytest.mark.slow
 
 def test_cli_runs_scene_and_resumes(tmp_path):
     """The CLI writes the outputs it documents, and --resume on a finished run does no extra
-    simulated time (same end time and frame count)."""
+    simulated time (same end time and frame count); --pair-chunks re-chunks a resumed run and is
+    a one-line error without --resume or below 1."""
     cfg = {
         "scene": "silo",
         "name": "tiny",
@@ -53,6 +54,11 @@ def test_cli_runs_scene_and_resumes(tmp_path):
         assert (out / "vtk" / "particles.pvd").exists()
         assert main(["dem", "run", str(path), "--out", str(out), "--resume", "--no-progress"]) == 0
         assert len(FrameReader(out / "frames")) == n_frames
+        resume = ["dem", "run", str(path), "--out", str(out), "--resume", "--no-progress"]
+        assert main([*resume, "--pair-chunks", "1"]) == 0
+        assert main([*resume, "--pair-chunks", "0"]) == 2
+        assert main([*resume, "--pair-chunks", "two"]) == 2
+        assert main(["dem", "run", str(path), "--out", str(out), "--pair-chunks", "2"]) == 2
         bad = tmp_path / "bad.yaml"
         bad.write_text(yaml.safe_dump({"scene": "silo", "radius": -1}))
         assert main(["dem", "run", str(bad), "--out", str(out)]) == 2

@@ -758,49 +758,83 @@ class PeriodicTransitSensor:
         L = np.zeros(3)
         L[axis] = length
         self._tr = _Tracker(L)
-        self._u: dict[int, float] = {}
-        self._best: dict[int, int] = {}
+        # tracked particles: ids (sorted), unwrapped coordinate and the period index reached
+        self._ids = np.zeros(0, np.int64)
+        self._u = np.zeros(0)
+        self._best = np.zeros(0, np.int64)
         self._last_pass: dict[int, float] = {}
         self.passages_: list[tuple[int, float]] = []
         self.transits_: list[float] = []
+
+    def __setstate__(self, state: dict) -> None:
+        """Unpickle, converting the per-particle dictionaries of earlier versions to arrays (a
+        run checkpointed by them resumes)."""
+        if isinstance(state.get("_u"), dict):
+            ids = np.array(sorted(state["_u"]), np.int64)
+            state["_ids"] = ids
+            state["_best"] = np.array([state["_best"][int(i)] for i in ids], np.int64)
+            state["_u"] = np.array([state["_u"][int(i)] for i in ids], float)
+        self.__dict__.update(state)
+
+    def _levels(self, u: np.ndarray) -> np.ndarray:
+        """Period index reached at unwrapped coordinates u: ``floor(direction (u - u_ref) / L)``."""
+        return np.floor(self.direction * (u - self.u_ref) / self.length).astype(np.int64)
+
+    def _rows(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of ``ids`` in the tracked arrays, and whether each is tracked."""
+        k = np.searchsorted(self._ids, ids)
+        k = np.clip(k, 0, max(len(self._ids) - 1, 0))
+        ok = self._ids[k] == ids if len(self._ids) else np.zeros(len(ids), bool)
+        return k, ok
+
+    def _track_new(self, ids: np.ndarray, x: np.ndarray) -> None:
+        """Start tracking the particles of ``ids`` not tracked yet, at coordinates x."""
+        new = ~self._rows(ids)[1]
+        if not new.any():
+            return
+        ids_all = np.concatenate([self._ids, ids[new]])
+        u_all = np.concatenate([self._u, x[new]])
+        best_all = np.concatenate([self._best, self._levels(x[new])])
+        order = np.argsort(ids_all, kind="stable")
+        self._ids, self._u, self._best = ids_all[order], u_all[order], best_all[order]
+
+    def _record_passages(
+        self, pid: int, u0: float, u1: float, best: int, lvl: int, t_prev: float, t: float
+    ) -> None:
+        """Passages (and transits) of particle ``pid`` moving from u0 to u1 between t_prev and t,
+        from period index ``best`` up to ``lvl`` (times linearly interpolated)."""
+        while lvl > best:
+            best += 1
+            target = self.u_ref + self.direction * best * self.length
+            frac = (target - u0) / (u1 - u0) if u1 != u0 else 1.0
+            tp = t_prev + min(max(frac, 0.0), 1.0) * (t - t_prev)
+            if tp >= self.t_start:
+                self.passages_.append((pid, tp))
+                if pid in self._last_pass:
+                    self.transits_.append(tp - self._last_pass[pid])
+                self._last_pass[pid] = tp
 
     def update(self, state: Any) -> None:
         s = state_view(state)
         m = self._tr.step(s)
         ax = self.axis
-        if m is None:
-            for i, x in zip(s.ids, s.pos[:, ax]):
-                self._u[int(i)] = float(x)
-                self._best[int(i)] = int(np.floor(self.direction * (x - self.u_ref) / self.length))
-            return
-        cur, a, b, t_prev = m
-        for c, xa, xb in zip(cur, a[:, ax], b[:, ax]):
-            pid = int(s.ids[c])
-            u0 = self._u.get(pid, float(xa))
+        ids = np.asarray(s.ids, np.int64)
+        if m is not None:
+            cur, a, b, t_prev = m
+            k, ok = self._rows(ids[cur])
+            cur, k = cur[ok], k[ok]
+            xa, xb = a[ok, ax], b[ok, ax]
+            u0 = self._u[k]
             u1 = u0 + (xb - xa)
-            self._u[pid] = u1
-            best = self._best.get(pid)
-            lvl = int(np.floor(self.direction * (u1 - self.u_ref) / self.length))
-            if best is None:
-                self._best[pid] = lvl
-                continue
-            while lvl > best:
-                best += 1
-                target = self.u_ref + self.direction * best * self.length
-                frac = (target - u0) / (u1 - u0) if u1 != u0 else 1.0
-                tp = t_prev + min(max(frac, 0.0), 1.0) * (s.t - t_prev)
-                if tp >= self.t_start:
-                    self.passages_.append((pid, tp))
-                    if pid in self._last_pass:
-                        self.transits_.append(tp - self._last_pass[pid])
-                    self._last_pass[pid] = tp
-            self._best[pid] = best
-        # new particles
-        known = set(self._u)
-        for i, x in zip(s.ids, s.pos[:, ax]):
-            if int(i) not in known:
-                self._u[int(i)] = float(x)
-                self._best[int(i)] = int(np.floor(self.direction * (x - self.u_ref) / self.length))
+            self._u[k] = u1
+            lvl = self._levels(u1)
+            best = self._best[k]
+            for q in np.nonzero(lvl > best)[0]:  # a few particles per update: in index order
+                self._record_passages(
+                    int(ids[cur[q]]), u0[q], u1[q], int(best[q]), int(lvl[q]), t_prev, s.t
+                )
+            self._best[k] = np.maximum(best, lvl)
+        self._track_new(ids, np.asarray(s.pos[:, ax], float))
 
     @property
     def transit_times_(self) -> np.ndarray:

@@ -156,6 +156,7 @@ class Simulation:
         self._n = 0
         self._forces_stale = True
         self._warned_resolution = False
+        self._warned_chunks = False
         self._alloc(16, kown=8, krev=8, ktri=4)
         self._planes = np.zeros((0, _PLANE_COLS))
         self._cyls = np.zeros((0, _CYL_COLS))
@@ -880,6 +881,7 @@ class Simulation:
         if callback_every_s is not None and not callback_every_s > 0:
             raise ValueError(f"callback_every_s must be > 0, got {callback_every_s}")
         dt = self._freeze_dt()
+        self._check_chunks(numba.get_num_threads())
         nsteps = int(round(duration_s / dt))
         cb_every = nsteps if callback_every_s is None else max(1, int(round(callback_every_s / dt)))
         bar = None
@@ -929,6 +931,22 @@ class Simulation:
             if bar is not None:
                 bar.close()
         return self
+
+    def _check_chunks(self, threads: int) -> None:
+        """Warn once when the pair scatter has fewer chunks than there are threads: its chunks
+        run on at most ``pair_chunks`` threads (a state saved by a one-thread run keeps one chunk
+        when it is resumed; :meth:`load_checkpoint` with ``pair_chunks`` re-chunks it)."""
+        if self._warned_chunks or not self._serial() or threads <= self.pair_chunks:
+            return
+        self._warned_chunks = True
+        warnings.warn(
+            f"the pair forces are summed in pair_chunks={self.pair_chunks} chunk(s) and run on "
+            f"at most that many of the {threads} threads; load the checkpoint with "
+            f"pair_chunks={threads} (twin dem run --resume --pair-chunks {threads}) to use them "
+            "all (the sums then run in another order: not bit-identical to the saved run)",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
     def _advance(
         self, chunk: int, dt: float, chooser: ThreadChooser | None

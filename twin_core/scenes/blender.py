@@ -109,15 +109,22 @@ def _grid_edges(cfg: BlenderScene, geo: SceneGeometry) -> list[np.ndarray]:
 
 
 def run(
-    cfg: BlenderScene, rpm: float, run_dir: Path, *, resume: bool = False, progress: bool = True
+    cfg: BlenderScene,
+    rpm: float,
+    run_dir: Path,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    pair_chunks: int | None = None,
 ) -> dict:
-    """Run one blade speed into ``run_dir`` and return its results (also in results.json)."""
+    """Run one blade speed into ``run_dir`` and return its results (also in results.json);
+    ``pair_chunks`` re-chunks a resumed run's pair scatter (``common.load_checkpoint``)."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     geo = build_geometry(cfg, rpm)
     L = cfg.geometry.length
     push = geo.info["blade_push_sign_x"]
-    loaded = common.load_checkpoint(run_dir) if resume else None
+    loaded = common.load_checkpoint(run_dir, pair_chunks) if resume else None
     if loaded is None:
         sim, geo = build(cfg, rpm)
         state = common.RunState()

@@ -268,15 +268,18 @@ def save_checkpoint(sim: Any, state: RunState, run_dir: Path) -> None:
     tmp.replace(run_dir / "state.pkl")
 
 
-def load_checkpoint(run_dir: Path) -> tuple[Any, RunState] | None:
-    """(Simulation, RunState) of an interrupted run, or None if there is no checkpoint."""
+def load_checkpoint(run_dir: Path, pair_chunks: int | None = None) -> tuple[Any, RunState] | None:
+    """(Simulation, RunState) of an interrupted run, or None if there is no checkpoint.
+    ``pair_chunks``: None keeps the saved run's chunks of the pair scatter (the resumed run is
+    bit-identical to an uninterrupted one); a number re-chunks it (``Simulation.load_checkpoint``),
+    e.g. to use two threads on a run started with one."""
     from twin_core.dem.simulation import Simulation
 
     ck = run_dir / "checkpoint.npz"
     st = run_dir / "state.pkl"
     if not (ck.exists() and st.exists()):
         return None
-    sim = Simulation.load_checkpoint(ck)
+    sim = Simulation.load_checkpoint(ck, pair_chunks=pair_chunks)
     with st.open("rb") as fh:
         state = pickle.load(fh)
     return sim, state

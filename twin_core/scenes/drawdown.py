@@ -86,12 +86,20 @@ def responses(state: Any, geo: SceneGeometry, flow: PlaneFlowSensor, cfg: Drawdo
     }
 
 
-def run(cfg: DrawdownScene, run_dir: Path, *, resume: bool = False, progress: bool = True) -> dict:
-    """Run the drawdown test into ``run_dir``; returns the results (also results.json)."""
+def run(
+    cfg: DrawdownScene,
+    run_dir: Path,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    pair_chunks: int | None = None,
+) -> dict:
+    """Run the drawdown test into ``run_dir``; returns the results (also results.json);
+    ``pair_chunks`` re-chunks a resumed run's pair scatter (``common.load_checkpoint``)."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     geo = build_geometry(cfg)
-    loaded = common.load_checkpoint(run_dir) if resume else None
+    loaded = common.load_checkpoint(run_dir, pair_chunks) if resume else None
     if loaded is None:
         sim, geo = build(cfg)
         state = common.RunState()

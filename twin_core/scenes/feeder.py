@@ -164,14 +164,16 @@ def run(
     refill_level: float | None = None,
     resume: bool = False,
     progress: bool = True,
+    pair_chunks: int | None = None,
 ) -> dict:
-    """Run the feeder (optionally with one refill at ``refill_level``) into ``run_dir``."""
+    """Run the feeder (optionally with one refill at ``refill_level``) into ``run_dir``;
+    ``pair_chunks`` re-chunks a resumed run's pair scatter (``common.load_checkpoint``)."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     geo = build_geometry(cfg)
     x_out = geo.info["outlet_x"]
     dens = cfg.material.density
-    loaded = common.load_checkpoint(run_dir) if resume else None
+    loaded = common.load_checkpoint(run_dir, pair_chunks) if resume else None
     if loaded is None:
         sim, geo = build(cfg)
         state = common.RunState()

@@ -23,11 +23,13 @@ log = logging.getLogger(__name__)
 Run = tuple[str, dict, Path]
 
 
-def _runs(cfg: Any, out: Path, resume: bool, progress: bool) -> tuple[Any, list[Run]]:
+def _runs(
+    cfg: Any, out: Path, resume: bool, progress: bool, pair_chunks: int | None
+) -> tuple[Any, list[Run]]:
     """(geometry of the first run, [(name, results, run directory)]) of the scene."""
     from twin_core.scenes import blender, drawdown, feeder, silo
 
-    kw = {"resume": resume, "progress": progress}
+    kw = {"resume": resume, "progress": progress, "pair_chunks": pair_chunks}
     if cfg.scene == "blender":
         runs = []
         for rpm in cfg.rpms:
@@ -168,11 +170,17 @@ def _scalars(res: dict) -> dict:
 
 
 def run_scene(
-    cfg: Any, out_dir: str | Path, *, resume: bool = False, progress: bool = True
+    cfg: Any,
+    out_dir: str | Path,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    pair_chunks: int | None = None,
 ) -> dict[str, dict]:
     """Run a scene (``schemas.dem_scene`` config) into ``out_dir`` with its outputs (module
     docstring); returns the scalar results by run (also in ``summary.json``). ``resume``:
-    continue each run from its last checkpoint. The engine's kernels are compiled (or loaded
+    continue each run from its last checkpoint, its pair scatter in the saved chunks or, with
+    ``pair_chunks``, re-chunked (to use more threads than the run was started with). The engine's kernels are compiled (or loaded
     from numba's cache) first, phase by phase, each phase logged before it starts."""
     from twin_core.dem.stl import write_stl
     from twin_core.dem.warmup import compile_kernels
@@ -180,7 +188,7 @@ def run_scene(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     compile_kernels(report=log.info)
-    geo0, runs = _runs(cfg, out, resume, progress)
+    geo0, runs = _runs(cfg, out, resume, progress, pair_chunks)
     if cfg.output.stl:
         for m in geo0.all_meshes():
             write_stl(out / f"geometry_{m.name}.stl", m.vertices, m.triangles, name=m.name)

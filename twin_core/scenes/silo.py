@@ -155,11 +155,19 @@ def _recycle(sim: Any, cfg: SiloScene, rng: np.random.Generator, z_base: float) 
     return len(placed)
 
 
-def run(cfg: SiloScene, run_dir: Path, *, resume: bool = False, progress: bool = True) -> dict:
-    """Run the silo discharge into ``run_dir``; returns results (also results.json)."""
+def run(
+    cfg: SiloScene,
+    run_dir: Path,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    pair_chunks: int | None = None,
+) -> dict:
+    """Run the silo discharge into ``run_dir``; returns results (also results.json);
+    ``pair_chunks`` re-chunks a resumed run's pair scatter (``common.load_checkpoint``)."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    loaded = common.load_checkpoint(run_dir) if resume else None
+    loaded = common.load_checkpoint(run_dir, pair_chunks) if resume else None
     geo = build_geometry(cfg)
     if loaded is None:
         sim, geo = build(cfg)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numba
 import numpy as np
@@ -360,6 +361,26 @@ def test_a_checkpoint_keeps_its_scatter_chunks_unless_told(tmp_path):
     assert two._acc.shape[0] == 2
     scale = np.abs(a.vel).max()
     assert np.allclose(two.vel, a.vel, rtol=0, atol=1e-12 * scale)
+
+
+def test_a_run_with_fewer_scatter_chunks_than_threads_says_so_once():
+    """A scatter of fewer chunks than threads leaves threads idle in the pair forces (a state of
+    a one-thread run resumed on two): the run warns once, naming the remedy; a run with as many
+    chunks as threads does not."""
+    threads = min(2, numba.config.NUMBA_NUM_THREADS)
+    if threads < 2:
+        pytest.skip("one thread: nothing to share")
+    numba.set_num_threads(threads)
+    a = _bed(pair_scheme="scatter")
+    a.pair_chunks = 1
+    with pytest.warns(RuntimeWarning, match=r"pair_chunks=1 chunk.*--pair-chunks 2"):
+        a.run(0.001)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="the pair forces")
+        a.run(0.001)  # said once
+        b = _bed(pair_scheme="scatter")
+        b.pair_chunks = threads
+        b.run(0.001)
 
 
 def test_results_do_not_depend_on_thread_count():
