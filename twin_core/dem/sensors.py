@@ -107,6 +107,15 @@ def _periodic_lengths(periodic_lengths: Any) -> np.ndarray:
     return L
 
 
+def _match_ids(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position of each of ``ids`` in the ascending array ``sorted_ids`` and whether it is there
+    (positions of absent ids are clipped into range and meaningless)."""
+    k = np.searchsorted(sorted_ids, ids)
+    k = np.clip(k, 0, max(len(sorted_ids) - 1, 0))
+    ok = (sorted_ids[k] == ids) if len(sorted_ids) else np.zeros(len(ids), bool)
+    return k, ok
+
+
 class _Tracker:
     """Keeps the previous state and matches particles by id."""
 
@@ -124,10 +133,7 @@ class _Tracker:
             p = self.prev
             if s.t < p.t:
                 raise ValueError(f"state t must not go backwards: {s.t} < {p.t}")
-            sorted_ids = p.ids[self._order]
-            k = np.searchsorted(sorted_ids, s.ids)
-            k = np.clip(k, 0, max(len(sorted_ids) - 1, 0))
-            ok = (sorted_ids[k] == s.ids) if len(sorted_ids) else np.zeros(len(s.ids), bool)
+            k, ok = _match_ids(p.ids[self._order], s.ids)
             cur = np.nonzero(ok)[0]
             prev_idx = self._order[k[ok]]
             a = p.pos[prev_idx]
@@ -780,21 +786,13 @@ class PeriodicTransitSensor:
         """Period index reached at unwrapped coordinates u: ``floor(direction (u - u_ref) / L)``."""
         return np.floor(self.direction * (u - self.u_ref) / self.length).astype(np.int64)
 
-    def _rows(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Rows of ``ids`` in the tracked arrays, and whether each is tracked."""
-        k = np.searchsorted(self._ids, ids)
-        k = np.clip(k, 0, max(len(self._ids) - 1, 0))
-        ok = self._ids[k] == ids if len(self._ids) else np.zeros(len(ids), bool)
-        return k, ok
-
-    def _track_new(self, ids: np.ndarray, x: np.ndarray) -> None:
-        """Start tracking the particles of ``ids`` not tracked yet, at coordinates x."""
-        new = ~self._rows(ids)[1]
-        if not new.any():
+    def _track(self, ids: np.ndarray, x: np.ndarray) -> None:
+        """Start tracking the particles ``ids`` (not tracked yet) at coordinates x."""
+        if not len(ids):
             return
-        ids_all = np.concatenate([self._ids, ids[new]])
-        u_all = np.concatenate([self._u, x[new]])
-        best_all = np.concatenate([self._best, self._levels(x[new])])
+        ids_all = np.concatenate([self._ids, ids])
+        u_all = np.concatenate([self._u, x])
+        best_all = np.concatenate([self._best, self._levels(x)])
         order = np.argsort(ids_all, kind="stable")
         self._ids, self._u, self._best = ids_all[order], u_all[order], best_all[order]
 
@@ -819,10 +817,11 @@ class PeriodicTransitSensor:
         m = self._tr.step(s)
         ax = self.axis
         ids = np.asarray(s.ids, np.int64)
+        rows, tracked = _match_ids(self._ids, ids)
         if m is not None:
             cur, a, b, t_prev = m
-            k, ok = self._rows(ids[cur])
-            cur, k = cur[ok], k[ok]
+            ok = tracked[cur]
+            cur, k = cur[ok], rows[cur[ok]]
             xa, xb = a[ok, ax], b[ok, ax]
             u0 = self._u[k]
             u1 = u0 + (xb - xa)
@@ -834,7 +833,7 @@ class PeriodicTransitSensor:
                     int(ids[cur[q]]), u0[q], u1[q], int(best[q]), int(lvl[q]), t_prev, s.t
                 )
             self._best[k] = np.maximum(best, lvl)
-        self._track_new(ids, np.asarray(s.pos[:, ax], float))
+        self._track(ids[~tracked], np.asarray(s.pos[~tracked, ax], float))
 
     @property
     def transit_times_(self) -> np.ndarray:
