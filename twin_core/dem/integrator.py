@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit, prange
 
 from .meshes import add_mesh_contacts, update_mesh
-from .pairs import chunk_sums, gather_pair_slots, pair_pass, pair_scatter
+from .pairs import chunk_sums, gather_pair_slots, mark_live, pair_pass, pair_scatter
 from .partition import rebuild, rebuild_due
 from .space import FMA, min_image
 from .walls import add_cylinder_contacts, add_plane_contacts
@@ -146,7 +146,7 @@ def gather_pass(
         if use_acc:
             fx, fy, fz, tx, ty, tz = chunk_sums(i, acc, bounds)
         else:
-            fx, fy, fz, tx, ty, tz = gather_pair_slots(i, P[i, 9], pf, nrev, rev_o, rev_k, nown)
+            fx, fy, fz, tx, ty, tz = gather_pair_slots(i, pf, nrev, rev_o, rev_k, nown)
         fx, fy, fz, tx, ty, tz = add_plane_contacts(
             i, P, IA, planes, whist, pt, dt, t, fx, fy, fz, tx, ty, tz
         )
@@ -164,16 +164,23 @@ def gather_pass(
 
 @njit(cache=True)
 def _forces_and_kick(
-    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, bounds, c,
+    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, live, clist, work, pf, acc,
+    bounds, c,
     tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
     planes, cyls, pt, dom, per, grav, dt, t, serial, predict_next, XB, rm, sinks, disp2,
 ):  # fmt: skip
     """Forces at time t on the live lists ``c`` and the second half kick: the pair forces by the
     chunked scatter (``serial``) or pass 1, then pass 2 (:func:`gather_pass`)."""
     if serial:
-        pair_scatter(n, P, IA, nb_b[c], nown_b[c], hist_b[c], acc, bounds, pt, dom, per, dt)
+        pair_scatter(
+            n, P, IA, nb_b[c], nown_b[c], hist_b[c], live, clist, work, acc, bounds, pt, dom, per,
+            dt,
+        )  # fmt: skip
     else:
-        pair_pass(n, P, F, IA, nb_b[c], nown_b[c], hist_b[c], pf, pt, dom, per, dt)
+        pair_pass(
+            n, P, IA, nb_b[c], nown_b[c], hist_b[c], live, clist, work, pf, bounds, pt, dom, per,
+            dt,
+        )  # fmt: skip
     gather_pass(
         n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc, bounds,
         planes, cyls, whist,
@@ -185,7 +192,7 @@ def _forces_and_kick(
 @njit(cache=True)
 def advance(
     nsteps, step0, dt, n, P, F, IA, XB, rm, disp2, whist,
-    nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, bounds, cur,
+    nb_b, hist_b, nown_b, rev_o, rev_k, nrev, live, clist, work, pf, acc, bounds, cur,
     tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x0, tri_x, tri_xb, tri_mesh, mesh_par, any_moving,
     planes, cyls, sinks, pt, dom, per, grav, skin, rmax, removed, counters, serial,
 ):  # fmt: skip
@@ -199,6 +206,7 @@ def advance(
     size) before calling again.
     """
     meshes_move = any_moving and tri_x.shape[0] > 0
+    mark_live(n, nown_b[cur[0]], hist_b[cur[0]], live)
     predict(n, P, F, XB, rm, dom, per, sinks, dt, disp2)
     for s in range(nsteps):
         t_new = (step0 + s + 1) * dt
@@ -216,13 +224,15 @@ def advance(
                 counters[2] = needed
                 return status, s, n
             n = n_new
+            mark_live(n, nown_b[cur[0]], hist_b[cur[0]], live)
             counters[0] = 0
             counters[1] += 1
             if meshes_move:
                 update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
         kick_drift(n, P, F, dom, per, dt)
         _forces_and_kick(
-            n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, bounds, cur[0],
+            n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, live, clist, work, pf,
+            acc, bounds, cur[0],
             tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
             planes, cyls, pt, dom, per, grav, dt, t_new, serial, True, XB, rm, sinks, disp2,
         )  # fmt: skip
@@ -231,7 +241,8 @@ def advance(
 
 @njit(cache=True)
 def compute_forces(
-    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, bounds, cur,
+    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, live, clist, work, pf, acc,
+    bounds, cur,
     tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
     planes, cyls, pt, dom, per, grav, dt, t, serial,
 ):  # fmt: skip
@@ -244,8 +255,10 @@ def compute_forces(
     th = thist_b[c].copy()
     wh = whist.copy()
     v = P[:n, 3:9].copy()
+    mark_live(n, nown_b[c], hist_b[c], live)
     _forces_and_kick(
-        n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pf, acc, bounds, c,
+        n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, live, clist, work, pf, acc,
+        bounds, c,
         tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
         planes, cyls, pt, dom, per, grav, dt, t, serial,
         False, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 6)), np.zeros(0),

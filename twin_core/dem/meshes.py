@@ -119,9 +119,9 @@ def _pick(k, a, b):
 
 
 @njit(cache=True, inline="always")
-def nearest_image_contact(px, py, pz, tri, dom, per):
+def nearest_image_contact(px, py, pz, tri, dom, per, reach2):
     """Image q of point p nearest to triangle ``tri`` and its closest point c on the triangle:
-    (qx, qy, qz, cx, cy, cz, feature), feature as in :func:`closest_point_triangle`.
+    (qx, qy, qz, cx, cy, cz, feature, d2), feature as in :func:`closest_point_triangle`, d2 = |q - c|^2.
 
     Along a periodic axis a triangle can come close to two images of p (a wall that spans the
     whole period, e.g. a trough extruded along the periodic axis): both are tried, the second
@@ -129,12 +129,22 @@ def nearest_image_contact(px, py, pz, tri, dom, per):
     found so far. Minimum image about the triangle's centroid instead picks, for p within a
     third of the period of the seam, an image outside a full-length triangle and misses the
     contact.
+
+    Only contacts closer than ``sqrt(reach2)`` are sought: an image is skipped without the
+    closest-point search when its gap to the triangle's bounding box or its distance to the
+    triangle's plane is not below that reach (most candidates of a list built with a skin).
+    Returns the squared distance last, ``inf`` with p itself for both points when no image is
+    within reach.
     """
+    ux, uy, uz = tri[3] - tri[0], tri[4] - tri[1], tri[5] - tri[2]
+    wx, wy, wz = tri[6] - tri[0], tri[7] - tri[1], tri[8] - tri[2]
+    nx, ny, nz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+    nn = nx * nx + ny * ny + nz * nz  # |normal|^2 (0 for a degenerate triangle: no plane test)
     sx0, gx0, sx1, gx1 = _axis_images(px, tri[0], tri[3], tri[6], dom[6], per[0] != 0)
     sy0, gy0, sy1, gy1 = _axis_images(py, tri[1], tri[4], tri[7], dom[7], per[1] != 0)
     sz0, gz0, sz1, gz1 = _axis_images(pz, tri[2], tri[5], tri[8], dom[8], per[2] != 0)
-    best = math.inf
-    out = (px, py, pz, px, py, pz, 0)
+    best = reach2
+    out = (px, py, pz, px, py, pz, 0, math.inf)
     for a in range(2):
         gx = _pick(a, gx0, gx1)
         for b in range(2):
@@ -146,11 +156,14 @@ def nearest_image_contact(px, py, pz, tri, dom, per):
                 qx = px + _pick(a, sx0, sx1)
                 qy = py + _pick(b, sy0, sy1)
                 qz = pz + _pick(c, sz0, sz1)
+                dn = nx * (qx - tri[0]) + ny * (qy - tri[1]) + nz * (qz - tri[2])
+                if dn * dn >= best * nn and nn > 0.0:
+                    continue  # the plane is out of reach: so is the triangle
                 cx, cy, cz, feat = closest_point_triangle(qx, qy, qz, tri)
                 d2 = (qx - cx) ** 2 + (qy - cy) ** 2 + (qz - cz) ** 2
                 if d2 < best:
                     best = d2
-                    out = (qx, qy, qz, cx, cy, cz, feat)
+                    out = (qx, qy, qz, cx, cy, cz, feat, d2)
     return out
 
 
@@ -248,6 +261,7 @@ def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tm
     ``tri_tmp[i, k]`` (feature -1: no contact, its history cleared). Returns the contact count."""
     x, y, z = P[i, 0], P[i, 1], P[i, 2]
     ri = P[i, 9]
+    reach2 = ri * ri * (1.0 + 1e-9)  # a margin: the exact test is on the distance below
     ncont = 0
     for k in range(nt):
         q = tri_nb[i, k]
@@ -257,7 +271,10 @@ def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tm
         if not (mesh_par[mesh, 13] <= t < mesh_par[mesh, 14]):
             clear_history(thist, i, k)
             continue
-        qx, qy, qz, cpx, cpy, cpz, feat = nearest_image_contact(x, y, z, tri, dom, per)
+        qx, qy, qz, cpx, cpy, cpz, feat, d2 = nearest_image_contact(x, y, z, tri, dom, per, reach2)
+        if d2 == math.inf:
+            clear_history(thist, i, k)
+            continue
         ddx, ddy, ddz = cpx - qx, cpy - qy, cpz - qz
         dist = math.sqrt(ddx * ddx + ddy * ddy + ddz * ddz)
         if dist >= ri or dist == 0.0:

@@ -218,8 +218,9 @@ def _build_tri(
         for s in range(tstart[c], tstart[c + 1]):
             q = tcell[s]
             tri = tri_x[q]
-            qx, qy, qz, cx, cy, cz, _ = nearest_image_contact(x, y, z, tri, dom, per)
-            if (qx - cx) ** 2 + (qy - cy) ** 2 + (qz - cz) ** 2 < (r + skin) ** 2:
+            reach2 = (r + skin) ** 2
+            _, _, _, _, _, _, _, d2 = nearest_image_contact(x, y, z, tri, dom, per, reach2)
+            if d2 < reach2:
                 if cnt < kmax:
                     tri_nb_new[i, cnt] = q
                     _carry_history(thist_new, i, cnt, tri_nb_old, ntri_old, thist_old, oi, q, 1.0)

@@ -26,6 +26,7 @@ from .integrator import advance, compute_forces
 from .materials import Material, MaterialTable, hertz_contact_time, rayleigh_time
 from .meshes import update_mesh
 from .motion import RotationMotion, TranslationMotion, motion_from_dict
+from .pairs import BLOCK_WORDS
 from .partition import rebuild
 from .space import NPC
 from .threads import ThreadChooser, current_policy
@@ -190,6 +191,10 @@ class Simulation:
         self._pf = np.zeros((cap, kown, 10))
         self._acc = np.zeros((self.pair_chunks, cap, 6))
         self._bounds = np.zeros(self._acc.shape[0] + 1, np.int64)
+        # work arrays of the batched contact law (twin_core.dem.pairs), derived each step
+        self._live = np.zeros((cap, kown), np.uint8)
+        self._clist = np.zeros((2, cap * kown), np.int32)
+        self._work = np.zeros((self.pair_chunks, BLOCK_WORDS))
         self._rev_o = np.zeros((cap, krev), np.int64)
         self._rev_k = np.zeros((cap, krev), np.int64)
         self._nrev = np.zeros(cap, np.int64)
@@ -838,13 +843,15 @@ class Simulation:
         if self._acc.shape[0] != k:
             self._acc = np.zeros((k, self._cap, 6))
             self._bounds = np.zeros(k + 1, np.int64)
+            self._work = np.zeros((k, BLOCK_WORDS))
         return self._acc, self._bounds
 
     def _compute_forces(self) -> None:
         self._chunk_buffers()
         compute_forces(
             self._n, self._P, self._F, self._IA, self._whist, self._nb, self._hist, self._nown,
-            self._rev_o, self._rev_k, self._nrev, self._pf, self._acc, self._bounds, self._cur,
+            self._rev_o, self._rev_k, self._nrev, self._live, self._clist, self._work, self._pf,
+            self._acc, self._bounds, self._cur,
             self._tri_nb, self._thist, self._ntri, self._tri_tmp, self._tri_x, self._tri_mesh,
             self._mesh_par, self._planes, self._cyls, self._pt, self._dom, self._per,
             self._grav, self.dt, self.t, self._serial(),
@@ -962,6 +969,7 @@ class Simulation:
             chunk, self._step, dt, self._n, self._P, self._F, self._IA, self._XB,
             self._rm, self._disp2, self._whist,
             self._nb, self._hist, self._nown, self._rev_o, self._rev_k, self._nrev,
+            self._live, self._clist, self._work,
             self._pf, self._acc, self._bounds, self._cur, self._tri_nb, self._thist, self._ntri,
             self._tri_tmp, self._tri_x0, self._tri_x, self._tri_xb, self._tri_mesh,
             self._mesh_par,
