@@ -22,7 +22,7 @@ J. Chem. Phys. 76, 637 (velocity form); Allen & Tildesley, Computer Simulation o
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import get_thread_id, njit, prange
 
 from .meshes import add_mesh_contacts, update_mesh
 from .pairs import chunk_sums, gather_pair_slots, mark_live, pair_pass, pair_scatter
@@ -154,7 +154,8 @@ def gather_pass(
             i, P, IA, cyls, npl, whist, pt, dt, t, fx, fy, fz, tx, ty, tz
         )
         fx, fy, fz, tx, ty, tz = add_mesh_contacts(
-            i, P, IA, ntri, tri_nb, thist, tri_tmp, tri_x, tri_mesh, mesh_par, pt, dom, per, dt,
+            i, P, IA, ntri, tri_nb, thist, tri_tmp[get_thread_id()], tri_x, tri_mesh, mesh_par, pt,
+            dom, per, dt,
             t, fx, fy, fz, tx, ty, tz,
         )  # fmt: skip
         _store_and_kick(i, P, F, grav, dt, fx, fy, fz, tx, ty, tz)

@@ -258,7 +258,8 @@ def max_tri_disp2(tri_x, tri_xb):
 def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tmp, dom, per, t):
     """First sweep over the candidate triangles of particle i: closest point (cx, cy, cz),
     distance and feature of each triangle of an active mesh that the sphere overlaps, stored in
-    ``tri_tmp[i, k]`` (feature -1: no contact, its history cleared). Returns the contact count."""
+    ``tri_tmp[k]`` (the calling thread's scratch, (ktri, 8); feature -1: no contact, its history
+    cleared). Returns the contact count."""
     x, y, z = P[i, 0], P[i, 1], P[i, 2]
     ri = P[i, 9]
     reach2 = ri * ri * (1.0 + 1e-9)  # a margin: the exact test is on the distance below
@@ -267,7 +268,7 @@ def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tm
         q = tri_nb[i, k]
         mesh = tri_mesh[q]
         tri = tri_x[q]
-        tri_tmp[i, k, 4] = -1.0
+        tri_tmp[k, 4] = -1.0
         if not (mesh_par[mesh, 13] <= t < mesh_par[mesh, 14]):
             clear_history(thist, i, k)
             continue
@@ -280,14 +281,14 @@ def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tm
         if dist >= ri or dist == 0.0:
             clear_history(thist, i, k)
             continue
-        tri_tmp[i, k, 0] = cpx
-        tri_tmp[i, k, 1] = cpy
-        tri_tmp[i, k, 2] = cpz
-        tri_tmp[i, k, 3] = dist
-        tri_tmp[i, k, 4] = feat
-        tri_tmp[i, k, 5] = ddx / dist
-        tri_tmp[i, k, 6] = ddy / dist
-        tri_tmp[i, k, 7] = ddz / dist
+        tri_tmp[k, 0] = cpx
+        tri_tmp[k, 1] = cpy
+        tri_tmp[k, 2] = cpz
+        tri_tmp[k, 3] = dist
+        tri_tmp[k, 4] = feat
+        tri_tmp[k, 5] = ddx / dist
+        tri_tmp[k, 6] = ddy / dist
+        tri_tmp[k, 7] = ddz / dist
         ncont += 1
     return ncont
 
@@ -297,14 +298,14 @@ def _shadowing_contact(i, k, nt, tol, tri_tmp, tri_nb, tri_x):
     """The accepted contact (``tri_tmp`` feature 10 + f) that shadows the edge/vertex contact k
     of particle i: same contact point within ``tol``, or k's contact point lies on a triangle
     with an accepted face contact. Returns its slot, or -1."""
-    cpx, cpy, cpz = tri_tmp[i, k, 0], tri_tmp[i, k, 1], tri_tmp[i, k, 2]
+    cpx, cpy, cpz = tri_tmp[k, 0], tri_tmp[k, 1], tri_tmp[k, 2]
     for k2 in range(nt):
-        f2 = tri_tmp[i, k2, 4]
+        f2 = tri_tmp[k2, 4]
         if f2 < 10.0:  # not (yet) accepted
             continue
-        ddx = cpx - tri_tmp[i, k2, 0]
-        ddy = cpy - tri_tmp[i, k2, 1]
-        ddz = cpz - tri_tmp[i, k2, 2]
+        ddx = cpx - tri_tmp[k2, 0]
+        ddy = cpy - tri_tmp[k2, 1]
+        ddz = cpz - tri_tmp[k2, 2]
         if ddx * ddx + ddy * ddy + ddz * ddz < tol * tol:
             return k2
         if f2 == 10.0:
@@ -338,11 +339,11 @@ def _add_triangle_contact(i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_pa
     """Add to particle i's force and torque (fx .. tz) its accepted contact with candidate
     triangle k (contact point and distance from ``tri_tmp``); updates the history
     ``thist[i, k]``. Returns the new (fx, fy, fz, tx, ty, tz)."""
-    cpx, cpy, cpz = tri_tmp[i, k, 0], tri_tmp[i, k, 1], tri_tmp[i, k, 2]
+    cpx, cpy, cpz = tri_tmp[k, 0], tri_tmp[k, 1], tri_tmp[k, 2]
     q = tri_nb[i, k]
     mesh = tri_mesh[q]
-    dist = tri_tmp[i, k, 3]
-    nx, ny, nz = tri_tmp[i, k, 5], tri_tmp[i, k, 6], tri_tmp[i, k, 7]
+    dist = tri_tmp[k, 3]
+    nx, ny, nz = tri_tmp[k, 5], tri_tmp[k, 6], tri_tmp[k, 7]
     vwx, vwy, vwz, wwx, wwy, wwz = _wall_motion(mesh_par, mesh, t, cpx, cpy, cpz)
     return add_wall_contact(
         P, IA, i, nx, ny, nz, P[i, 9] - dist, vwx, vwy, vwz, wwx, wwy, wwz,
@@ -357,7 +358,9 @@ def add_mesh_contacts(
 ):  # fmt: skip
     """Add to particle i's force and torque (fx .. tz) its mesh contacts (module docstring):
     faces first, then edges, then vertices, each dropped when shadowed (it then copies the
-    shadowing contact's history). Returns the new (fx, fy, fz, tx, ty, tz)."""
+    shadowing contact's history). ``tri_tmp`` (ktri, 8): the calling thread's scratch rows (a
+    few cache lines that stay in L1, where one row block per particle did not). Returns the new
+    (fx, fy, fz, tx, ty, tz)."""
     nt = ntri[i]
     if nt == 0:
         return fx, fy, fz, tx, ty, tz
@@ -368,7 +371,7 @@ def add_mesh_contacts(
     # faces first (feature 0), then edges (1), then vertices (2)
     for feat_pass in range(3):
         for k in range(nt):
-            if tri_tmp[i, k, 4] != feat_pass:
+            if tri_tmp[k, 4] != feat_pass:
                 continue
             shadow = -1
             if feat_pass > 0:
@@ -377,9 +380,9 @@ def add_mesh_contacts(
                 thist[i, k, 0] = thist[i, shadow, 0]
                 thist[i, k, 1] = thist[i, shadow, 1]
                 thist[i, k, 2] = thist[i, shadow, 2]
-                tri_tmp[i, k, 4] = -1.0
+                tri_tmp[k, 4] = -1.0
                 continue
-            tri_tmp[i, k, 4] = 10.0 + feat_pass
+            tri_tmp[k, 4] = 10.0 + feat_pass
             fx, fy, fz, tx, ty, tz = _add_triangle_contact(
                 i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt, dom, per, dt, t,
                 fx, fy, fz, tx, ty, tz,

@@ -71,7 +71,7 @@ __all__ = [
 #: contacts per block of the batched contact law (its inputs and results stay in L1)
 BLOCK = 128
 _ROW = BLOCK + 8  # row stride of a block buffer: rows 1 KiB apart would share L1 sets
-_NIN = 26  # input rows of a block (see _load_block)
+_NIN = 27  # input rows of a block (see _load_block)
 _NOUT = 13  # result rows (see contact_block)
 #: words of one chunk's block buffer (``work[c]``)
 BLOCK_WORDS = (_NIN + _NOUT) * _ROW
@@ -124,7 +124,8 @@ def _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w):
     """Copy the inputs of contacts ``clist[:, q0:q0+nq]`` into the rows of the block buffer
     ``w`` (one row per quantity, one column per contact): separation (3), radii and masses (4),
     relative velocity (3), angular velocities (6), inverse-inertia sum, spring (3), material
-    pair coefficients (6)."""
+    pair coefficients (6) and the code of that material pair (1; :func:`_forget_pairs` resets the
+    codes at the start of each evaluation, so the coefficients come from the current tables)."""
     l0, l1, l2 = dom[6], dom[7], dom[8]
     p0, p1, p2 = per[0] != 0, per[1] != 0, per[2] != 0
     for q in range(nq):
@@ -151,10 +152,20 @@ def _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w):
         w[17 * _ROW + q] = hist[i, k, 0]
         w[18 * _ROW + q] = hist[i, k, 1]
         w[19 * _ROW + q] = hist[i, k, 2]
-        a = IA[i, 1]
-        b = IA[j, 1]
-        for e in range(6):
-            w[(20 + e) * _ROW + q] = pt[e, a, b]
+        # the coefficients are written only when the column held another material pair
+        # (row 26: its code): a bed of one material writes them once
+        code = float(IA[i, 1] * pt.shape[2] + IA[j, 1])
+        if w[26 * _ROW + q] != code:
+            w[26 * _ROW + q] = code
+            for e in range(6):
+                w[(20 + e) * _ROW + q] = pt[e, IA[i, 1], IA[j, 1]]
+
+
+@njit(cache=True, inline="always")
+def _forget_pairs(w):
+    """Mark every column of the block buffer ``w`` as holding no material pair's coefficients."""
+    for q in range(BLOCK):
+        w[26 * _ROW + q] = -1.0
 
 
 @njit(cache=True, fastmath=FMA, error_model="numpy")
@@ -296,6 +307,7 @@ def pair_pass(n, P, IA, nb, nown, hist, live, clist, work, pf, bounds, pt, dom, 
                 pf[i, k, 9] = 0.0  # not in contact unless written below
         off = lo * kown
         m = find_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, off)
+        _forget_pairs(w)
         for q0 in range(off, off + m, BLOCK):
             nq = min(BLOCK, off + m - q0)
             _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w)
@@ -357,6 +369,7 @@ def pair_scatter(n, P, IA, nb, nown, hist, live, clist, work, acc, bounds, pt, d
                 a[i, e] = 0.0
         off = lo * kown
         m = find_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, off)
+        _forget_pairs(w)
         for q0 in range(off, off + m, BLOCK):
             nq = min(BLOCK, off + m - q0)
             _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w)

@@ -202,7 +202,8 @@ class Simulation:
         self._tri_nb = np.zeros((2, cap, ktri), np.int64)
         self._thist = np.zeros((2, cap, ktri, 3))
         self._ntri = np.zeros((2, cap), np.int64)
-        self._tri_tmp = np.zeros((cap, ktri, 8))
+        # mesh-contact scratch, one block per thread (meshes.add_mesh_contacts)
+        self._tri_tmp = np.zeros((numba.config.NUMBA_NUM_THREADS, ktri, 8))
 
     def _resize(
         self, cap: int | None = None, kown: int | None = None, krev: int | None = None,

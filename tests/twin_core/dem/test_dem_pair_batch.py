@@ -153,3 +153,42 @@ def test_a_spring_is_cleared_when_its_pair_parts_between_rebuilds():
     P[1, 0] = 2.1e-3  # apart, still listed
     assert find_contacts(0, 2, P, nb, nown, hist, live, dom, per, clist, 0) == 0
     assert hist[0, 0].tolist() == [0.0, 0.0, 0.0] and live[0, 0] == 0
+
+
+def test_each_contact_takes_its_material_pair_from_the_current_tables():
+    """Static contacts (no velocity, no spring) of alternating materials get the Hertz force
+    ``(4/3) E* sqrt(R*) delta^(3/2)`` (Hertz 1882) of their own material pair, and a changed
+    table is used at the next evaluation (the block buffer keeps no stale coefficients)."""
+    from twin_core.dem.pairs import pair_scatter
+
+    n = 5
+    r = 1e-3
+    P = np.zeros((n, 13))
+    P[:, 0] = 0.1 + np.arange(n) * 1.99e-3  # chain along x, overlap 10 um
+    P[:, 9] = r
+    P[:, 10] = 1e-5
+    P[:, 11] = 1e5
+    P[:, 12] = 1.0
+    IA = np.zeros((n, 3), np.int64)
+    IA[:, 1] = [0, 1, 0, 1, 1]
+    nb = np.zeros((n, 1), np.int64)
+    nb[:, 0] = np.minimum(np.arange(n) + 1, n - 1)
+    nown = np.array([1, 1, 1, 1, 0], np.int64)
+    hist = np.zeros((n, 1, 3))
+    live = np.zeros((n, 1), np.uint8)
+    clist = np.zeros((2, n), np.int32)
+    work = np.zeros((1, BLOCK_WORDS))
+    acc = np.zeros((1, n, 6))
+    bounds = np.zeros(2, np.int64)
+    dom = np.array([0, 0, 0, 1, 1, 1, 1, 1, 1.0])
+    per = np.zeros(3, np.int64)
+    pt = np.zeros((6, 2, 2))
+    pt[2] = 0.5
+    delta = 2 * r - 1.99e-3
+    for e01 in (2e8, 7e8):
+        pt[0] = [[1e8, e01], [e01, 4e8]]
+        pair_scatter(n, P, IA, nb, nown, hist, live, clist, work, acc, bounds, pt, dom, per, 1e-7)
+        e_pairs = np.array([e01, e01, e01, 4e8])  # contacts 0-1, 1-2, 2-3, 3-4
+        f = 4 / 3 * e_pairs * np.sqrt(r / 2) * delta**1.5
+        want = np.r_[-f[0], f[:-1] - f[1:], f[-1]]
+        np.testing.assert_allclose(acc[0, :n, 0], want, rtol=0, atol=1e-9 * f.max())
