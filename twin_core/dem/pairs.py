@@ -87,7 +87,7 @@ def mark_live(n, nown, hist, live):
             live[i, k] = (hist[i, k, 0] != 0.0) | (hist[i, k, 1] != 0.0) | (hist[i, k, 2] != 0.0)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, fastmath=FMA)
 def find_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, off):
     """The owned pairs of owners ``lo .. hi-1`` in contact, in owner then slot order, written as
     (owner, slot) to ``clist[:, off:]``; returns their count. A listed pair found apart has its
@@ -119,7 +119,7 @@ def find_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, off):
     return m - off
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w):
     """Copy the inputs of contacts ``clist[:, q0:q0+nq]`` into the rows of the block buffer
     ``w`` (one row per quantity, one column per contact): separation (3), radii and masses (4),
