@@ -1,0 +1,212 @@
+"""Where a DEM step's time goes, part by part, on one thread (docs/dem_engine.md, "The contact
+law vectorised").
+
+On a saved state (``--state``: a run directory or checkpoint of ``twin dem run``, e.g. the seed
+blender section at t = 20.5 s) or, without one, a settled 6,000-sphere drum (the case of
+``dem_throughput.py``), it times each part in a loop of its own, on the same lists:
+
+- the pair scatter's parts: finding the contacts, copying their inputs into the blocks, the
+  contact law over the blocks, the springs written back and the forces added; and the whole
+  scatter (``pair_scatter``: the parts plus what they cost together);
+- the force pass with and without the mesh contacts (``gather_pass``; the state's velocities
+  are restored after the timing: each call applies a half kick);
+- one neighbour rebuild, and a plain run for the step time and the rebuild interval.
+
+Reports the numba compile time apart (first calls). Usage::
+
+    python benchmarks/dem_step_parts.py [--state RUN_DIR] [--repeat 300] [--steps 3000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numba
+import numpy as np
+from numba import njit
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from machine import describe  # noqa: E402
+
+
+def _timed(f: Callable[[], object], repeat: int) -> float:
+    """Mean microseconds of ``f()`` over ``repeat`` calls after one untimed call."""
+    f()
+    t0 = time.perf_counter()
+    for _ in range(repeat):
+        f()
+    return (time.perf_counter() - t0) / repeat * 1e6
+
+
+def _load(state: str | None):
+    from twin_core.dem import Simulation
+
+    if state:
+        path = Path(state)
+        sim = Simulation.load_checkpoint(
+            path / "checkpoint.npz" if path.is_dir() else path, pair_chunks=1
+        )
+    else:
+        from dem_throughput import DT, make_sim
+
+        sim = make_sim(6000, "drum")
+        sim.run(2000 * DT, progress=False)
+        sim.pair_chunks = 1
+    sim.thread_policy = "fixed"
+    return sim
+
+
+def _part_kernels():
+    """njit loops that run one part of the pair scatter over all contacts of one chunk."""
+    from twin_core.dem import pairs as pa
+    from twin_core.dem.space import FMA
+
+    @njit(fastmath=FMA)
+    def find(n, P, nb, nown, hist, live, dom, per, clist):
+        return pa.find_contacts(0, n, P, nb, nown, hist, live, dom, per, clist, 0)
+
+    @njit(fastmath=FMA)
+    def blocks(m, stage, P, IA, nb, hist, pt, dom, per, clist, w, a, dt):
+        for q0 in range(0, m, pa.BLOCK):
+            nq = min(pa.BLOCK, m - q0)
+            if stage & 1:
+                pa._load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w)
+            if stage & 2:
+                pa.contact_block(nq, w, dt)
+            if stage & 4:
+                pa._store_springs(clist, q0, nq, hist, w)
+                pa._scatter_block(clist, q0, nq, nb, w, a)
+
+    return find, blocks
+
+
+def main(argv: list[str] | None = None) -> int:
+    from twin_core.dem.threads import prefer_openmp
+
+    prefer_openmp()
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--state", default=None, help="run directory or checkpoint (default: drum)")
+    ap.add_argument("--repeat", type=int, default=300)
+    ap.add_argument("--steps", type=int, default=3000)
+    args = ap.parse_args(argv)
+    if args.state and not (
+        Path(args.state).is_file() or (Path(args.state) / "checkpoint.npz").is_file()
+    ):
+        ap.error(f"--state: no checkpoint at {args.state}")
+    print(describe())
+    numba.set_num_threads(1)
+    t0 = time.perf_counter()
+    sim = _load(args.state)
+    sim.run(100 * sim.dt, progress=False)
+    from twin_core.dem.integrator import gather_pass, kick_drift
+    from twin_core.dem.pairs import mark_live, pair_scatter
+
+    find, blocks = _part_kernels()
+    s, c, n = sim, sim._cur[0], sim._n
+    nb, nown, hist = s._nb[c], s._nown[c], s._hist[c].copy()
+    mark_live(n, nown, hist, s._live)
+    m = find(n, s._P, nb, nown, hist, s._live, s._dom, s._per, s._clist)
+    blocks(
+        m, 7, s._P, s._IA, nb, hist, s._pt, s._dom, s._per, s._clist, s._work[0], s._acc[0], s.dt
+    )
+    print(f"load and compile (first calls): {time.perf_counter() - t0:.1f} s")
+    print(f"particles {n}, listed pairs {int(nown[:n].sum())}, in contact {m}, "
+          f"candidate triangles {int(s._ntri[c][:n].sum())}")  # fmt: skip
+    bl = (s._P, s._IA, nb, hist, s._pt, s._dom, s._per, s._clist, s._work[0], s._acc[0], s.dt)
+    t = {
+        "find the contacts": _timed(
+            lambda: find(n, s._P, nb, nown, hist, s._live, s._dom, s._per, s._clist), args.repeat
+        ),
+        "copy inputs into the blocks": _timed(lambda: blocks(m, 1, *bl), args.repeat),
+        "contact law (SIMD)": _timed(lambda: blocks(m, 2, *bl), args.repeat),
+        "springs back, forces added": _timed(lambda: blocks(m, 4, *bl), args.repeat),
+    }
+    t["pair scatter (whole)"] = _timed(
+        lambda: pair_scatter(
+            n,
+            s._P,
+            s._IA,
+            nb,
+            nown,
+            hist,
+            s._live,
+            s._clist,
+            s._work,
+            s._acc,
+            s._bounds,
+            s._pt,
+            s._dom,
+            s._per,
+            s.dt,
+        ),  # fmt: skip
+        args.repeat,
+    )
+    v = s._P[:n, 3:9].copy()
+    for label, ntri in (("force pass", s._ntri[c]), ("force pass without meshes", None)):
+        nt = ntri if ntri is not None else np.zeros_like(s._ntri[c])
+        t[label] = _timed(
+            lambda nt=nt: gather_pass(
+                n,
+                s._P,
+                s._F,
+                s._IA,
+                nown,
+                s._pf,
+                s._nrev,
+                s._rev_o,
+                s._rev_k,
+                True,
+                s._acc,
+                s._bounds,
+                s._planes,
+                s._cyls,
+                s._whist,
+                nt,
+                s._tri_nb[c],
+                s._thist[c],
+                s._tri_tmp,
+                s._tri_x,
+                s._tri_mesh,
+                s._mesh_par,
+                s._pt,
+                s._dom,
+                s._per,
+                s._grav,
+                s.dt,
+                s.t,
+                True,
+                s._XB,
+                s._rm,
+                s._sinks,
+                s._disp2,
+            ),  # fmt: skip
+            args.repeat,
+        )
+        s._P[:n, 3:9] = v
+    t["first half kick and drift"] = _timed(
+        lambda: kick_drift(n, s._P, s._F, s._dom, s._per, 0.0), args.repeat
+    )
+    for k, us in t.items():
+        per = f", {us / m * 1e3:.1f} ns per contact" if k in (
+            "copy inputs into the blocks", "contact law (SIMD)", "springs back, forces added"
+        ) else ""  # fmt: skip
+        print(f"  {k}: {us:.0f} us{per}")
+    r0, w0 = sim.n_rebuilds, sim.wall_time_s
+    sim.run(args.steps * sim.dt, progress=False)
+    step = (sim.wall_time_s - w0) / args.steps * 1e6
+    nreb = sim.n_rebuilds - r0
+    t_rb = _timed(sim._rebuild, 20)
+    print(f"run of {args.steps} steps: {step:.0f} us per step ({n / step:.2f} M particle-steps/s), "
+          f"a rebuild every {args.steps / max(nreb, 1):.0f} steps, {t_rb:.0f} us each "
+          f"({t_rb * nreb / args.steps:.0f} us per step)")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
