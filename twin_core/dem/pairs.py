@@ -252,6 +252,25 @@ def _store_springs(clist, q0, nq, hist, w):
 
 
 @njit(cache=True, inline="always")
+def _chunk_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, w):
+    """The contacts of the chunk of owners ``lo .. hi-1`` (:func:`find_contacts`) from their offset
+    ``lo * kown`` in ``clist``, the block buffer ``w`` made ready: returns (offset, count)."""
+    off = lo * nb.shape[1]
+    m = find_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, off)
+    _forget_pairs(w)
+    return off, m
+
+
+@njit(cache=True, inline="always")
+def _evaluate_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w, dt):
+    """Contacts ``clist[:, q0:q0+nq]``: inputs into ``w``, the law over the block, the new
+    springs back to ``hist``; the forces and torques are left in ``w``."""
+    _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w)
+    contact_block(nq, w, dt)
+    _store_springs(clist, q0, nq, hist, w)
+
+
+@njit(cache=True, inline="always")
 def _scatter_block(clist, q0, nq, nb, w, a):
     """Add the block's forces and torques to both particles of each contact, in contact order
     (owner i: + force, + torque on i; partner j: - force, + torque on j)."""
@@ -298,21 +317,16 @@ def pair_pass(n, P, IA, nb, nown, hist, live, clist, work, pf, bounds, pt, dom, 
     (as in LIGGGHTS).
     """
     chunk_bounds(n, nown, bounds)
-    kown = nb.shape[1]
     for c in prange(work.shape[0]):
         w = work[c]
         lo, hi = bounds[c], bounds[c + 1]
         for i in range(lo, hi):
             for k in range(nown[i]):
                 pf[i, k, 9] = 0.0  # not in contact unless written below
-        off = lo * kown
-        m = find_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, off)
-        _forget_pairs(w)
+        off, m = _chunk_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, w)
         for q0 in range(off, off + m, BLOCK):
             nq = min(BLOCK, off + m - q0)
-            _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w)
-            contact_block(nq, w, dt)
-            _store_springs(clist, q0, nq, hist, w)
+            _evaluate_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w, dt)
             _slot_block(clist, q0, nq, w, pf)
 
 
@@ -359,7 +373,6 @@ def pair_scatter(n, P, IA, nb, nown, hist, live, clist, work, acc, bounds, pt, d
     ``acc``.
     """
     chunk_bounds(n, nown, bounds)
-    kown = nb.shape[1]
     for c in prange(acc.shape[0]):
         a = acc[c]
         w = work[c]
@@ -367,14 +380,10 @@ def pair_scatter(n, P, IA, nb, nown, hist, live, clist, work, acc, bounds, pt, d
         for i in range(lo, n):
             for e in range(6):
                 a[i, e] = 0.0
-        off = lo * kown
-        m = find_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, off)
-        _forget_pairs(w)
+        off, m = _chunk_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, w)
         for q0 in range(off, off + m, BLOCK):
             nq = min(BLOCK, off + m - q0)
-            _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w)
-            contact_block(nq, w, dt)
-            _store_springs(clist, q0, nq, hist, w)
+            _evaluate_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w, dt)
             _scatter_block(clist, q0, nq, nb, w, a)
 
 
