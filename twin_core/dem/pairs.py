@@ -49,6 +49,7 @@ from .contact import (
     clear_history,
     hertz_energy,
     hertz_mindlin,
+    pair_coefficients,
     rolling_torque,
 )
 from .space import FMA, min_image
@@ -58,11 +59,11 @@ __all__ = [
     "BLOCK_WORDS",
     "add_pair_energy",
     "chunk_bounds",
+    "chunk_sums",
     "contact_block",
     "find_contacts",
-    "mark_live",
-    "chunk_sums",
     "gather_pair_slots",
+    "mark_live",
     "pair_pass",
     "pair_scatter",
 ]
@@ -154,11 +155,18 @@ def _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w):
         w[19 * _ROW + q] = hist[i, k, 2]
         # the coefficients are written only when the column held another material pair
         # (row 26: its code): a bed of one material writes them once
-        code = float(IA[i, 1] * pt.shape[2] + IA[j, 1])
+        a = IA[i, 1]
+        b = IA[j, 1]
+        code = float(a * pt.shape[2] + b)
         if w[26 * _ROW + q] != code:
             w[26 * _ROW + q] = code
-            for e in range(6):
-                w[(20 + e) * _ROW + q] = pt[e, IA[i, 1], IA[j, 1]]
+            e_star, g_star, mu, mur, dmp, tn_ratio = pair_coefficients(pt, a, b)
+            w[20 * _ROW + q] = e_star
+            w[21 * _ROW + q] = g_star
+            w[22 * _ROW + q] = mu
+            w[23 * _ROW + q] = mur
+            w[24 * _ROW + q] = dmp
+            w[25 * _ROW + q] = tn_ratio
 
 
 @njit(cache=True, inline="always")
