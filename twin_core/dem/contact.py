@@ -161,7 +161,7 @@ def hertz_energy(e_star, r_eff, delta):
 @njit(cache=True, fastmath=FMA)
 def wall_contact(
     vx, vy, vz, wx, wy, wz, r, m, inv_i, mat_p,
-    nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,
+    nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, i, k, dt,
 ):  # fmt: skip
     """Hertz-Mindlin force and torque on a sphere (velocity v, angular velocity w, radius r,
     mass m, inverse inertia, material ``mat_p``) touching an infinitely massive wall of material
@@ -169,7 +169,8 @@ def wall_contact(
 
     ``n`` points from the sphere centre to the contact; the lever arm is ``r - delta``; the wall
     moves at ``vw`` at the contact point and rotates at ``ww``. Returns (fx, fy, fz, tx, ty, tz);
-    ``hist`` (3,) is the tangential spring, updated in place. Compiled once and called by the
+    ``hist[i, k]`` (3,) is the tangential spring, updated in place (indexed, not passed as a
+    view: a view costs a reference count per contact). Compiled once and called by the
     plane, cylinder and mesh loops (not inlined: it is the largest piece of their code).
     """
     e_star, g_star, mu, mur, dmp, tn_ratio = pair_coefficients(pt, mat_p, mat_w)
@@ -180,11 +181,11 @@ def wall_contact(
     rvz = vz + c * (wx * ny - wy * nx) - vwz
     fn, ftx, fty, ftz, hx, hy, hz = hertz_mindlin(
         e_star, g_star, mu, dmp, tn_ratio, r, m, delta, nx, ny, nz, rvx, rvy, rvz,
-        hist[0], hist[1], hist[2], dt,
+        hist[i, k, 0], hist[i, k, 1], hist[i, k, 2], dt,
     )  # fmt: skip
-    hist[0] = hx
-    hist[1] = hy
-    hist[2] = hz
+    hist[i, k, 0] = hx
+    hist[i, k, 1] = hy
+    hist[i, k, 2] = hz
     # torque of the tangential force: (c n) x ft
     tx = c * (ny * ftz - nz * fty)
     ty = c * (nz * ftx - nx * ftz)
@@ -196,13 +197,13 @@ def wall_contact(
 
 @njit(cache=True, inline="always")
 def add_wall_contact(
-    P, IA, i, nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,
+    P, IA, i, nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, k, dt,
     fx, fy, fz, tx, ty, tz,
 ):  # fmt: skip
     """Add to sphere i's force and torque sums (fx .. tz) its :func:`wall_contact` (state row
-    ``P[i]``, material ``IA[i, 1]``). Returns the new (fx, fy, fz, tx, ty, tz)."""
+    ``P[i]``, material ``IA[i, 1]``, spring ``hist[i, k]``). Returns the new (fx, fy, fz, tx, ty, tz)."""
     a, b, c, d, e, f = wall_contact(
         P[i, 3], P[i, 4], P[i, 5], P[i, 6], P[i, 7], P[i, 8], P[i, 9], P[i, 10], P[i, 12],
-        IA[i, 1], nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, dt,
+        IA[i, 1], nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, i, k, dt,
     )  # fmt: skip
     return fx + a, fy + b, fz + c, tx + d, ty + e, tz + f

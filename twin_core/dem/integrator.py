@@ -154,7 +154,7 @@ def gather_pass(
             i, P, IA, cyls, npl, whist, pt, dt, t, fx, fy, fz, tx, ty, tz
         )
         fx, fy, fz, tx, ty, tz = add_mesh_contacts(
-            i, P, IA, ntri, tri_nb, thist, tri_tmp[get_thread_id()], tri_x, tri_mesh, mesh_par, pt,
+            i, P, IA, ntri, tri_nb, thist, tri_tmp, get_thread_id(), tri_x, tri_mesh, mesh_par, pt,
             dom, per, dt,
             t, fx, fy, fz, tx, ty, tz,
         )  # fmt: skip

@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import math
 
-from numba import njit, prange
+import numpy as np
+from numba import njit
 
 from .contact import add_wall_contact, clear_history
 
@@ -41,15 +42,15 @@ __all__ = [
 
 
 @njit(cache=True)
-def closest_point_triangle(px, py, pz, tri):
-    """Closest point of triangle ``tri`` (9 floats: a, b, c) to point p.
+def closest_point_triangle(px, py, pz, tri_x, q):
+    """Closest point of triangle ``tri_x[q]`` (9 floats: a, b, c) to point p.
 
     Returns (cx, cy, cz, feature) with feature 0 = face interior, 1 = edge, 2 = vertex.
     Reference: Ericson, Real-Time Collision Detection (2005), Sec. 5.1.5.
     """
-    ax, ay, az = tri[0], tri[1], tri[2]
-    bx, by, bz = tri[3], tri[4], tri[5]
-    cx, cy, cz = tri[6], tri[7], tri[8]
+    ax, ay, az = tri_x[q, 0], tri_x[q, 1], tri_x[q, 2]
+    bx, by, bz = tri_x[q, 3], tri_x[q, 4], tri_x[q, 5]
+    cx, cy, cz = tri_x[q, 6], tri_x[q, 7], tri_x[q, 8]
     abx, aby, abz = bx - ax, by - ay, bz - az
     acx, acy, acz = cx - ax, cy - ay, cz - az
     apx, apy, apz = px - ax, py - ay, pz - az
@@ -119,8 +120,8 @@ def _pick(k, a, b):
 
 
 @njit(cache=True, inline="always")
-def nearest_image_contact(px, py, pz, tri, dom, per, reach2):
-    """Image q of point p nearest to triangle ``tri`` and its closest point c on the triangle:
+def nearest_image_contact(px, py, pz, tri_x, tq, dom, per, reach2):
+    """Image q of point p nearest to triangle ``tri_x[tq]`` and its closest point c on the triangle:
     (qx, qy, qz, cx, cy, cz, feature, d2), feature as in :func:`closest_point_triangle`, d2 = |q - c|^2.
 
     Along a periodic axis a triangle can come close to two images of p (a wall that spans the
@@ -136,13 +137,14 @@ def nearest_image_contact(px, py, pz, tri, dom, per, reach2):
     Returns the squared distance last, ``inf`` with p itself for both points when no image is
     within reach.
     """
-    ux, uy, uz = tri[3] - tri[0], tri[4] - tri[1], tri[5] - tri[2]
-    wx, wy, wz = tri[6] - tri[0], tri[7] - tri[1], tri[8] - tri[2]
+    ax, ay, az = tri_x[tq, 0], tri_x[tq, 1], tri_x[tq, 2]
+    ux, uy, uz = tri_x[tq, 3] - ax, tri_x[tq, 4] - ay, tri_x[tq, 5] - az
+    wx, wy, wz = tri_x[tq, 6] - ax, tri_x[tq, 7] - ay, tri_x[tq, 8] - az
     nx, ny, nz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
     nn = nx * nx + ny * ny + nz * nz  # |normal|^2 (0 for a degenerate triangle: no plane test)
-    sx0, gx0, sx1, gx1 = _axis_images(px, tri[0], tri[3], tri[6], dom[6], per[0] != 0)
-    sy0, gy0, sy1, gy1 = _axis_images(py, tri[1], tri[4], tri[7], dom[7], per[1] != 0)
-    sz0, gz0, sz1, gz1 = _axis_images(pz, tri[2], tri[5], tri[8], dom[8], per[2] != 0)
+    sx0, gx0, sx1, gx1 = _axis_images(px, ax, tri_x[tq, 3], tri_x[tq, 6], dom[6], per[0] != 0)
+    sy0, gy0, sy1, gy1 = _axis_images(py, ay, tri_x[tq, 4], tri_x[tq, 7], dom[7], per[1] != 0)
+    sz0, gz0, sz1, gz1 = _axis_images(pz, az, tri_x[tq, 5], tri_x[tq, 8], dom[8], per[2] != 0)
     best = reach2
     out = (px, py, pz, px, py, pz, 0, math.inf)
     for a in range(2):
@@ -156,10 +158,10 @@ def nearest_image_contact(px, py, pz, tri, dom, per, reach2):
                 qx = px + _pick(a, sx0, sx1)
                 qy = py + _pick(b, sy0, sy1)
                 qz = pz + _pick(c, sz0, sz1)
-                dn = nx * (qx - tri[0]) + ny * (qy - tri[1]) + nz * (qz - tri[2])
+                dn = nx * (qx - ax) + ny * (qy - ay) + nz * (qz - az)
                 if dn * dn >= best * nn and nn > 0.0:
                     continue  # the plane is out of reach: so is the triangle
-                cx, cy, cz, feat = closest_point_triangle(qx, qy, qz, tri)
+                cx, cy, cz, feat = closest_point_triangle(qx, qy, qz, tri_x, tq)
                 d2 = (qx - cx) ** 2 + (qy - cy) ** 2 + (qz - cz) ** 2
                 if d2 < best:
                     best = d2
@@ -168,9 +170,9 @@ def nearest_image_contact(px, py, pz, tri, dom, per, reach2):
 
 
 @njit(cache=True)
-def dist_point_tri(px, py, pz, tri):
-    """Distance of point p to triangle ``tri`` (9 floats)."""
-    cx, cy, cz, _ = closest_point_triangle(px, py, pz, tri)
+def dist_point_tri(px, py, pz, tri_x, q):
+    """Distance of point p to triangle ``tri_x[q]`` (9 floats)."""
+    cx, cy, cz, _ = closest_point_triangle(px, py, pz, tri_x, q)
     return math.sqrt((px - cx) ** 2 + (py - cy) ** 2 + (pz - cz) ** 2)
 
 
@@ -204,22 +206,31 @@ def mesh_state(mesh_par, m, t):
     return active, kind, theta, omega, dx, dy, dz, vx, vy, vz
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t):
     """Place every triangle of a moving mesh at time t (Rodrigues rotation about the mesh axis or
-    translation), from its reference coordinates ``tri_x0``."""
-    nt = tri_x0.shape[0]
-    for q in prange(nt):
+    translation), from its reference coordinates ``tri_x0``. Each mesh's motion (and the cosine
+    and sine of its angle) is evaluated once, not per triangle: it runs every step while meshes
+    move (skin criterion), serially (a few hundred triangles: a parallel region costs more)."""
+    nm = mesh_par.shape[0]
+    motion = np.empty((nm, 5))  # cos, sin of the angle; translation (3)
+    for m in range(nm):
+        _, _, theta, _, dx, dy, dz, _, _, _ = mesh_state(mesh_par, m, t)
+        motion[m, 0] = math.cos(theta)
+        motion[m, 1] = math.sin(theta)
+        motion[m, 2] = dx
+        motion[m, 3] = dy
+        motion[m, 4] = dz
+    for q in range(tri_x0.shape[0]):
         m = tri_mesh[q]
         kind = int(mesh_par[m, 0])
         if kind == 0:
             continue
-        _, _, theta, _, dx, dy, dz, _, _, _ = mesh_state(mesh_par, m, t)
         if kind == 1:
             ax, ay, az = mesh_par[m, 1], mesh_par[m, 2], mesh_par[m, 3]
             ux, uy, uz = mesh_par[m, 4], mesh_par[m, 5], mesh_par[m, 6]
-            ct = math.cos(theta)
-            s = math.sin(theta)
+            ct = motion[m, 0]
+            s = motion[m, 1]
             for v in range(3):
                 px = tri_x0[q, 3 * v] - ax
                 py = tri_x0[q, 3 * v + 1] - ay
@@ -233,9 +244,9 @@ def update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t):
                 tri_x[q, 3 * v + 2] = az + pz * ct + cz * s + uz * kd * (1.0 - ct)
         else:
             for v in range(3):
-                tri_x[q, 3 * v] = tri_x0[q, 3 * v] + dx
-                tri_x[q, 3 * v + 1] = tri_x0[q, 3 * v + 1] + dy
-                tri_x[q, 3 * v + 2] = tri_x0[q, 3 * v + 2] + dz
+                tri_x[q, 3 * v] = tri_x0[q, 3 * v] + motion[m, 2]
+                tri_x[q, 3 * v + 1] = tri_x0[q, 3 * v + 1] + motion[m, 3]
+                tri_x[q, 3 * v + 2] = tri_x0[q, 3 * v + 2] + motion[m, 4]
 
 
 @njit(cache=True)
@@ -255,10 +266,11 @@ def max_tri_disp2(tri_x, tri_xb):
 
 
 @njit(cache=True, inline="always")
-def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tmp, dom, per, t):
+def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tmp, tid, dom, per,
+                      t):  # fmt: skip
     """First sweep over the candidate triangles of particle i: closest point (cx, cy, cz),
     distance and feature of each triangle of an active mesh that the sphere overlaps, stored in
-    ``tri_tmp[k]`` (the calling thread's scratch, (ktri, 8); feature -1: no contact, its history
+    ``tri_tmp[tid, k]`` (the calling thread's scratch rows, (ktri, 8); feature -1: no contact, its history
     cleared). Returns the contact count."""
     x, y, z = P[i, 0], P[i, 1], P[i, 2]
     ri = P[i, 9]
@@ -267,12 +279,13 @@ def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tm
     for k in range(nt):
         q = tri_nb[i, k]
         mesh = tri_mesh[q]
-        tri = tri_x[q]
-        tri_tmp[k, 4] = -1.0
+        tri_tmp[tid, k, 4] = -1.0
         if not (mesh_par[mesh, 13] <= t < mesh_par[mesh, 14]):
             clear_history(thist, i, k)
             continue
-        qx, qy, qz, cpx, cpy, cpz, feat, d2 = nearest_image_contact(x, y, z, tri, dom, per, reach2)
+        qx, qy, qz, cpx, cpy, cpz, feat, d2 = nearest_image_contact(
+            x, y, z, tri_x, q, dom, per, reach2
+        )
         if d2 == math.inf:
             clear_history(thist, i, k)
             continue
@@ -281,35 +294,35 @@ def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tm
         if dist >= ri or dist == 0.0:
             clear_history(thist, i, k)
             continue
-        tri_tmp[k, 0] = cpx
-        tri_tmp[k, 1] = cpy
-        tri_tmp[k, 2] = cpz
-        tri_tmp[k, 3] = dist
-        tri_tmp[k, 4] = feat
-        tri_tmp[k, 5] = ddx / dist
-        tri_tmp[k, 6] = ddy / dist
-        tri_tmp[k, 7] = ddz / dist
+        tri_tmp[tid, k, 0] = cpx
+        tri_tmp[tid, k, 1] = cpy
+        tri_tmp[tid, k, 2] = cpz
+        tri_tmp[tid, k, 3] = dist
+        tri_tmp[tid, k, 4] = feat
+        tri_tmp[tid, k, 5] = ddx / dist
+        tri_tmp[tid, k, 6] = ddy / dist
+        tri_tmp[tid, k, 7] = ddz / dist
         ncont += 1
     return ncont
 
 
 @njit(cache=True, inline="always")
-def _shadowing_contact(i, k, nt, tol, tri_tmp, tri_nb, tri_x):
+def _shadowing_contact(i, k, nt, tol, tri_tmp, tid, tri_nb, tri_x):
     """The accepted contact (``tri_tmp`` feature 10 + f) that shadows the edge/vertex contact k
     of particle i: same contact point within ``tol``, or k's contact point lies on a triangle
     with an accepted face contact. Returns its slot, or -1."""
-    cpx, cpy, cpz = tri_tmp[k, 0], tri_tmp[k, 1], tri_tmp[k, 2]
+    cpx, cpy, cpz = tri_tmp[tid, k, 0], tri_tmp[tid, k, 1], tri_tmp[tid, k, 2]
     for k2 in range(nt):
-        f2 = tri_tmp[k2, 4]
+        f2 = tri_tmp[tid, k2, 4]
         if f2 < 10.0:  # not (yet) accepted
             continue
-        ddx = cpx - tri_tmp[k2, 0]
-        ddy = cpy - tri_tmp[k2, 1]
-        ddz = cpz - tri_tmp[k2, 2]
+        ddx = cpx - tri_tmp[tid, k2, 0]
+        ddy = cpy - tri_tmp[tid, k2, 1]
+        ddz = cpz - tri_tmp[tid, k2, 2]
         if ddx * ddx + ddy * ddy + ddz * ddz < tol * tol:
             return k2
         if f2 == 10.0:
-            if dist_point_tri(cpx, cpy, cpz, tri_x[tri_nb[i, k2]]) < tol:
+            if dist_point_tri(cpx, cpy, cpz, tri_x, tri_nb[i, k2]) < tol:
                 return k2
     return -1
 
@@ -334,57 +347,58 @@ def _wall_motion(mesh_par, mesh, t, cpx, cpy, cpz):
 
 
 @njit(cache=True, inline="always")
-def _add_triangle_contact(i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt,
+def _add_triangle_contact(i, k, P, IA, tri_tmp, tid, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt,
                           dom, per, dt, t, fx, fy, fz, tx, ty, tz):  # fmt: skip
     """Add to particle i's force and torque (fx .. tz) its accepted contact with candidate
     triangle k (contact point and distance from ``tri_tmp``); updates the history
     ``thist[i, k]``. Returns the new (fx, fy, fz, tx, ty, tz)."""
-    cpx, cpy, cpz = tri_tmp[k, 0], tri_tmp[k, 1], tri_tmp[k, 2]
+    cpx, cpy, cpz = tri_tmp[tid, k, 0], tri_tmp[tid, k, 1], tri_tmp[tid, k, 2]
     q = tri_nb[i, k]
     mesh = tri_mesh[q]
-    dist = tri_tmp[k, 3]
-    nx, ny, nz = tri_tmp[k, 5], tri_tmp[k, 6], tri_tmp[k, 7]
+    dist = tri_tmp[tid, k, 3]
+    nx, ny, nz = tri_tmp[tid, k, 5], tri_tmp[tid, k, 6], tri_tmp[tid, k, 7]
     vwx, vwy, vwz, wwx, wwy, wwz = _wall_motion(mesh_par, mesh, t, cpx, cpy, cpz)
     return add_wall_contact(
         P, IA, i, nx, ny, nz, P[i, 9] - dist, vwx, vwy, vwz, wwx, wwy, wwz,
-        int(mesh_par[mesh, 15]), pt, thist[i, k], dt, fx, fy, fz, tx, ty, tz,
+        int(mesh_par[mesh, 15]), pt, thist, k, dt, fx, fy, fz, tx, ty, tz,
     )  # fmt: skip
 
 
 @njit(cache=True, inline="always")
 def add_mesh_contacts(
-    i, P, IA, ntri, tri_nb, thist, tri_tmp, tri_x, tri_mesh, mesh_par, pt, dom, per, dt, t,
+    i, P, IA, ntri, tri_nb, thist, tri_tmp, tid, tri_x, tri_mesh, mesh_par, pt, dom, per, dt, t,
     fx, fy, fz, tx, ty, tz,
 ):  # fmt: skip
     """Add to particle i's force and torque (fx .. tz) its mesh contacts (module docstring):
     faces first, then edges, then vertices, each dropped when shadowed (it then copies the
-    shadowing contact's history). ``tri_tmp`` (ktri, 8): the calling thread's scratch rows (a
-    few cache lines that stay in L1, where one row block per particle did not). Returns the new
-    (fx, fy, fz, tx, ty, tz)."""
+    shadowing contact's history). ``tri_tmp[tid]`` (ktri, 8): the calling thread's scratch rows
+    (a few cache lines that stay in L1, where one row block per particle did not), indexed in
+    place: a view of them made for every particle cost ~5 ns (a reference count) each. Returns
+    the new (fx, fy, fz, tx, ty, tz)."""
     nt = ntri[i]
     if nt == 0:
         return fx, fy, fz, tx, ty, tz
-    if _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tmp, dom, per,
-                         t) == 0:  # fmt: skip
+    if _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tmp, tid, dom,
+                         per, t) == 0:  # fmt: skip
         return fx, fy, fz, tx, ty, tz
     tol = 1e-7 * P[i, 9]
     # faces first (feature 0), then edges (1), then vertices (2)
     for feat_pass in range(3):
         for k in range(nt):
-            if tri_tmp[k, 4] != feat_pass:
+            if tri_tmp[tid, k, 4] != feat_pass:
                 continue
             shadow = -1
             if feat_pass > 0:
-                shadow = _shadowing_contact(i, k, nt, tol, tri_tmp, tri_nb, tri_x)
+                shadow = _shadowing_contact(i, k, nt, tol, tri_tmp, tid, tri_nb, tri_x)
             if shadow >= 0:
                 thist[i, k, 0] = thist[i, shadow, 0]
                 thist[i, k, 1] = thist[i, shadow, 1]
                 thist[i, k, 2] = thist[i, shadow, 2]
-                tri_tmp[k, 4] = -1.0
+                tri_tmp[tid, k, 4] = -1.0
                 continue
-            tri_tmp[k, 4] = 10.0 + feat_pass
+            tri_tmp[tid, k, 4] = 10.0 + feat_pass
             fx, fy, fz, tx, ty, tz = _add_triangle_contact(
-                i, k, P, IA, tri_tmp, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt, dom, per, dt, t,
-                fx, fy, fz, tx, ty, tz,
+                i, k, P, IA, tri_tmp, tid, tri_nb, tri_x, tri_mesh, mesh_par, thist, pt, dom, per,
+                dt, t, fx, fy, fz, tx, ty, tz,
             )  # fmt: skip
     return fx, fy, fz, tx, ty, tz

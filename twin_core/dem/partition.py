@@ -217,9 +217,8 @@ def _build_tri(
         cnt = 0
         for s in range(tstart[c], tstart[c + 1]):
             q = tcell[s]
-            tri = tri_x[q]
             reach2 = (r + skin) ** 2
-            _, _, _, _, _, _, _, d2 = nearest_image_contact(x, y, z, tri, dom, per, reach2)
+            _, _, _, _, _, _, _, d2 = nearest_image_contact(x, y, z, tri_x, q, dom, per, reach2)
             if d2 < reach2:
                 if cnt < kmax:
                     tri_nb_new[i, cnt] = q
@@ -360,15 +359,12 @@ def rebuild_due(n, disp2, rm, counters, skin, any_moving, tri_x0, tri_x, tri_xb,
     (``counters[0]``), a particle is flagged for removal, the predicted displacement since the
     last build ``disp2`` exceeds (skin/2)^2, or (moving meshes, placed at ``t_new`` here) the
     largest triangle displacement plus the largest particle displacement exceeds the skin."""
-    need = counters[0] != 0
     dmax2 = 0.0
-    for i in range(n):
-        if disp2[i] > dmax2:
-            dmax2 = disp2[i]
-        if rm[i] != 0:
-            need = True
-    if dmax2 > (0.5 * skin) ** 2:
-        need = True
+    flagged = 0
+    for i in range(n):  # branch-free (it runs every step)
+        dmax2 = max(dmax2, disp2[i])
+        flagged |= rm[i]
+    need = counters[0] != 0 or flagged != 0 or dmax2 > (0.5 * skin) ** 2
     if any_moving and tri_x.shape[0] > 0 and not need:
         update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
         if math.sqrt(max_tri_disp2(tri_x, tri_xb)) + math.sqrt(dmax2) > skin:

@@ -57,7 +57,7 @@ def add_plane_contacts(i, P, IA, planes, whist, pt, dt, t, fx, fy, fz, tx, ty, t
             continue
         fx, fy, fz, tx, ty, tz = add_wall_contact(
             P, IA, i, -planes[w, 3], -planes[w, 4], -planes[w, 5], delta,
-            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, int(planes[w, 6]), pt, whist[i, w], dt,
+            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, int(planes[w, 6]), pt, whist, w, dt,
             fx, fy, fz, tx, ty, tz,
         )  # fmt: skip
     return fx, fy, fz, tx, ty, tz
@@ -101,7 +101,7 @@ def add_cylinder_contacts(i, P, IA, cyls, npl, whist, pt, dt, t, fx, fy, fz, tx,
         vwz = om * (ux * cpy - uy * cpx)
         fx, fy, fz, tx, ty, tz = add_wall_contact(
             P, IA, i, nx, ny, nz, delta, vwx, vwy, vwz, om * ux, om * uy, om * uz,
-            int(cyls[w, 9]), pt, whist[i, hw], dt, fx, fy, fz, tx, ty, tz,
+            int(cyls[w, 9]), pt, whist, hw, dt, fx, fy, fz, tx, ty, tz,
         )  # fmt: skip
     return fx, fy, fz, tx, ty, tz
 
