@@ -41,7 +41,7 @@ __all__ = [
 ]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def closest_point_triangle(px, py, pz, tri_x, q):
     """Closest point of triangle ``tri_x[q]`` (9 floats: a, b, c) to point p.
 
@@ -147,6 +147,20 @@ def nearest_image_contact(px, py, pz, tri_x, tq, dom, per, reach2):
     sz0, gz0, sz1, gz1 = _axis_images(pz, az, tri_x[tq, 5], tri_x[tq, 8], dom[8], per[2] != 0)
     best = reach2
     out = (px, py, pz, px, py, pz, 0, math.inf)
+    if gx1 * gx1 >= best and gy1 * gy1 >= best and gz1 * gz1 >= best:
+        # the usual case: no second image within reach, one image to try (the loop below
+        # with its seven other images skipped, written out)
+        if gx0 * gx0 + gy0 * gy0 + gz0 * gz0 >= best:
+            return out
+        qx, qy, qz = px + sx0, py + sy0, pz + sz0
+        dn = nx * (qx - ax) + ny * (qy - ay) + nz * (qz - az)
+        if dn * dn >= best * nn and nn > 0.0:
+            return out
+        cx, cy, cz, feat = closest_point_triangle(qx, qy, qz, tri_x, tq)
+        d2 = (qx - cx) ** 2 + (qy - cy) ** 2 + (qz - cz) ** 2
+        if d2 < best:
+            out = (qx, qy, qz, cx, cy, cz, feat, d2)
+        return out
     for a in range(2):
         gx = _pick(a, gx0, gx1)
         for b in range(2):
