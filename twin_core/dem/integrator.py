@@ -144,7 +144,7 @@ def gather_pass(
     npl = planes.shape[0]
     for i in prange(n):
         if use_acc:
-            fx, fy, fz, tx, ty, tz = chunk_sums(i, acc, bounds)
+            fx, fy, fz, tx, ty, tz = chunk_sums(i, F, acc, bounds)
         else:
             fx, fy, fz, tx, ty, tz = gather_pair_slots(i, pf, nrev, rev_o, rev_k, nown)
         fx, fy, fz, tx, ty, tz = add_plane_contacts(
@@ -174,8 +174,8 @@ def _forces_and_kick(
     chunked scatter (``serial``) or pass 1, then pass 2 (:func:`gather_pass`)."""
     if serial:
         pair_scatter(
-            n, P, IA, nb_b[c], nown_b[c], hist_b[c], live, clist, work, acc, bounds, pt, dom, per,
-            dt,
+            n, P, IA, nb_b[c], nown_b[c], hist_b[c], live, clist, work, F, acc, bounds, pt, dom,
+            per, dt,
         )  # fmt: skip
     else:
         pair_pass(

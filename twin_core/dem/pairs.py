@@ -361,15 +361,16 @@ def chunk_bounds(n, nown, bounds):
 
 
 @njit(cache=True, parallel=True, fastmath=FMA)
-def pair_scatter(n, P, IA, nb, nown, hist, live, clist, work, acc, bounds, pt, dom, per, dt):
+def pair_scatter(n, P, IA, nb, nown, hist, live, clist, work, F, acc, bounds, pt, dom, per, dt):
     """Scatter scheme: evaluate each owned pair once and add its force and torques straight to
     both particles' sums (Newton's third law), without the pair buffer of :func:`pair_pass`.
 
-    The owners are split into ``K = acc.shape[0]`` chunks (:func:`chunk_bounds`); chunk c sums
-    into its own buffer ``acc[c]`` (rows ``bounds[c]`` to n: an owner's partners have larger
-    indices), so the chunks run on as many threads as there are, race-free, and the gather adds
-    ``acc[0, i] + acc[1, i] + ...`` in chunk order (:func:`chunk_sums`): the same sums for any
-    thread count. Within a chunk the contacts are found in owner then slot order
+    The owners are split into ``K = work.shape[0]`` chunks (:func:`chunk_bounds`); chunk 0
+    sums into ``F[:, :6]`` (free once the first half kick has used the last step's forces: one
+    buffer fewer to keep in cache), chunk c > 0 into its own buffer ``acc[c - 1]`` (rows
+    ``bounds[c]`` to n: an owner's partners have larger indices), so the chunks run on as many
+    threads as there are, race-free, and the gather adds ``F[i] + acc[0, i] + ...`` in chunk
+    order (:func:`chunk_sums`): the same sums for any thread count. Within a chunk the contacts are found in owner then slot order
     (:func:`find_contacts`), evaluated block by block (:func:`contact_block`, vectorised) and
     added in that order: particle j receives the contributions of its owners (ascending)
     before its own slots (ascending). With one chunk that is the order in which
@@ -378,11 +379,11 @@ def pair_scatter(n, P, IA, nb, nown, hist, live, clist, work, acc, bounds, pt, d
 
     The chunks are a ``prange``: numba compiles a parallel region with its array arguments
     marked as not aliasing each other, so the compiler can keep loads across the stores to
-    ``acc``.
+    the sums.
     """
     chunk_bounds(n, nown, bounds)
-    for c in prange(acc.shape[0]):
-        a = acc[c]
+    for c in prange(work.shape[0]):
+        a = F if c == 0 else acc[c - 1]
         w = work[c]
         lo, hi = bounds[c], bounds[c + 1]
         for i in range(lo, n):
@@ -396,20 +397,21 @@ def pair_scatter(n, P, IA, nb, nown, hist, live, clist, work, acc, bounds, pt, d
 
 
 @njit(cache=True, inline="always")
-def chunk_sums(i, acc, bounds):
-    """Pair force and torque (6) on particle i from the chunk buffers of :func:`pair_scatter`,
-    added in chunk order (chunks whose owners all come after i hold nothing for it)."""
-    fx, fy, fz = acc[0, i, 0], acc[0, i, 1], acc[0, i, 2]
-    tx, ty, tz = acc[0, i, 3], acc[0, i, 4], acc[0, i, 5]
-    for c in range(1, acc.shape[0]):
+def chunk_sums(i, F, acc, bounds):
+    """Pair force and torque (6) on particle i from the chunk sums of :func:`pair_scatter`
+    (chunk 0 in ``F``, chunk c > 0 in ``acc[c - 1]``), added in chunk order (chunks whose owners
+    all come after i hold nothing for it)."""
+    fx, fy, fz = F[i, 0], F[i, 1], F[i, 2]
+    tx, ty, tz = F[i, 3], F[i, 4], F[i, 5]
+    for c in range(1, bounds.shape[0] - 1):
         if bounds[c] > i:
             break
-        fx += acc[c, i, 0]
-        fy += acc[c, i, 1]
-        fz += acc[c, i, 2]
-        tx += acc[c, i, 3]
-        ty += acc[c, i, 4]
-        tz += acc[c, i, 5]
+        fx += acc[c - 1, i, 0]
+        fy += acc[c - 1, i, 1]
+        fz += acc[c - 1, i, 2]
+        tx += acc[c - 1, i, 3]
+        ty += acc[c - 1, i, 4]
+        tz += acc[c - 1, i, 5]
     return fx, fy, fz, tx, ty, tz
 
 

@@ -189,8 +189,9 @@ class Simulation:
         self._hist = np.zeros((2, cap, kown, 3))
         self._nown = np.zeros((2, cap), np.int64)
         self._pf = np.zeros((cap, kown, 10))
-        self._acc = np.zeros((self.pair_chunks, cap, 6))
-        self._bounds = np.zeros(self._acc.shape[0] + 1, np.int64)
+        # pair sums of the scatter's chunks after the first (the first sums into _F)
+        self._acc = np.zeros((self.pair_chunks - 1, cap, 6))
+        self._bounds = np.zeros(self.pair_chunks + 1, np.int64)
         # work arrays of the batched contact law (twin_core.dem.pairs), derived each step
         self._live = np.zeros((cap, kown), np.uint8)
         self._clist = np.zeros((2, cap * kown), np.int32)
@@ -837,12 +838,13 @@ class Simulation:
         return self.pair_scheme != "two_pass"
 
     def _chunk_buffers(self) -> tuple[np.ndarray, np.ndarray]:
-        """The scatter's force buffers and chunk bounds, sized to ``pair_chunks``."""
+        """The scatter's force buffers (chunks after the first) and chunk bounds, sized to
+        ``pair_chunks``."""
         k = int(self.pair_chunks)
         if k < 1:
             raise ValueError(f"pair_chunks must be >= 1, got {self.pair_chunks}")
-        if self._acc.shape[0] != k:
-            self._acc = np.zeros((k, self._cap, 6))
+        if self._bounds.shape[0] != k + 1:
+            self._acc = np.zeros((k - 1, self._cap, 6))
             self._bounds = np.zeros(k + 1, np.int64)
             self._work = np.zeros((k, BLOCK_WORDS))
         return self._acc, self._bounds

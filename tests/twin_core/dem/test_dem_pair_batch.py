@@ -178,7 +178,8 @@ def test_each_contact_takes_its_material_pair_from_the_current_tables():
     live = np.zeros((n, 1), np.uint8)
     clist = np.zeros((2, n), np.int32)
     work = np.zeros((1, BLOCK_WORDS))
-    acc = np.zeros((1, n, 6))
+    F = np.zeros((n, 6))  # the one chunk sums into F
+    acc = np.zeros((0, n, 6))
     bounds = np.zeros(2, np.int64)
     dom = np.array([0, 0, 0, 1, 1, 1, 1, 1, 1.0])
     per = np.zeros(3, np.int64)
@@ -187,8 +188,10 @@ def test_each_contact_takes_its_material_pair_from_the_current_tables():
     delta = 2 * r - 1.99e-3
     for e01 in (2e8, 7e8):
         pt[0] = [[1e8, e01], [e01, 4e8]]
-        pair_scatter(n, P, IA, nb, nown, hist, live, clist, work, acc, bounds, pt, dom, per, 1e-7)
+        pair_scatter(
+            n, P, IA, nb, nown, hist, live, clist, work, F, acc, bounds, pt, dom, per, 1e-7
+        )
         e_pairs = np.array([e01, e01, e01, 4e8])  # contacts 0-1, 1-2, 2-3, 3-4
         f = 4 / 3 * e_pairs * np.sqrt(r / 2) * delta**1.5
         want = np.r_[-f[0], f[:-1] - f[1:], f[-1]]
-        np.testing.assert_allclose(acc[0, :n, 0], want, rtol=0, atol=1e-9 * f.max())
+        np.testing.assert_allclose(F[:n, 0], want, rtol=0, atol=1e-9 * f.max())
