@@ -68,20 +68,20 @@ def _part_kernels():
     from twin_core.dem.space import FMA
 
     @njit(fastmath=FMA)
-    def find(n, P, nb, nown, hist, live, dom, per, clist):
-        return pa.find_contacts(0, n, P, nb, nown, hist, live, dom, per, clist, 0)
+    def find(n, P, nbf, pstart, hist, live, dom, per, clist):
+        return pa.find_contacts(0, n, P, nbf, pstart, hist, live, dom, per, clist, 0)
 
     @njit(fastmath=FMA)
-    def blocks(m, stage, P, IA, nb, hist, pt, dom, per, clist, w, a, dt):
+    def blocks(m, stage, P, IA, hist, pt, dom, per, clist, w, a, dt):
         for q0 in range(0, m, pa.BLOCK):
             nq = min(pa.BLOCK, m - q0)
             if stage & 1:
-                pa._load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w)
+                pa._load_block(clist, q0, nq, P, IA, hist, pt, dom, per, w)
             if stage & 2:
                 pa.contact_block(nq, w, dt)
             if stage & 4:
                 pa._store_springs(clist, q0, nq, hist, w)
-                pa._scatter_block(clist, q0, nq, nb, w, a)
+                pa._scatter_block(clist, q0, nq, w, a)
 
     return find, blocks
 
@@ -105,23 +105,25 @@ def main(argv: list[str] | None = None) -> int:
     sim = _load(args.state)
     sim.run(100 * sim.dt, progress=False)
     from twin_core.dem.integrator import gather_pass, kick_drift
-    from twin_core.dem.pairs import mark_live, pair_scatter
+    from twin_core.dem.pairs import flatten_pairs, pair_scatter
 
     find, blocks = _part_kernels()
     s, c, n = sim, sim._cur[0], sim._n
     nb, nown, hist = s._nb[c], s._nown[c], s._hist[c].copy()
     forces = s._F.copy()  # the state's forces, restored before the run below
     sums = np.zeros_like(s._F)  # a target for the blocks' forces
-    mark_live(n, nown, hist, s._live)
-    m = find(n, s._P, nb, nown, hist, s._live, s._dom, s._per, s._clist)
-    blocks(m, 7, s._P, s._IA, nb, hist, s._pt, s._dom, s._per, s._clist, s._work[0], sums, s.dt)
+    flatten_pairs(n, nb, nown, hist, s._pstart, s._nbf, s._live)
+    nbf, pstart = s._nbf, s._pstart
+    m = find(n, s._P, nbf, pstart, hist, s._live, s._dom, s._per, s._clist)
+    blocks(m, 7, s._P, s._IA, hist, s._pt, s._dom, s._per, s._clist, s._work[0], sums, s.dt)
     print(f"load and compile (first calls): {time.perf_counter() - t0:.1f} s")
     print(f"particles {n}, listed pairs {int(nown[:n].sum())}, in contact {m}, "
           f"candidate triangles {int(s._ntri[c][:n].sum())}")  # fmt: skip
-    bl = (s._P, s._IA, nb, hist, s._pt, s._dom, s._per, s._clist, s._work[0], sums, s.dt)
+    bl = (s._P, s._IA, hist, s._pt, s._dom, s._per, s._clist, s._work[0], sums, s.dt)
     t = {
         "find the contacts": _timed(
-            lambda: find(n, s._P, nb, nown, hist, s._live, s._dom, s._per, s._clist), args.repeat
+            lambda: find(n, s._P, nbf, pstart, hist, s._live, s._dom, s._per, s._clist),
+            args.repeat,
         ),
         "copy inputs into the blocks": _timed(lambda: blocks(m, 1, *bl), args.repeat),
         "contact law (SIMD)": _timed(lambda: blocks(m, 2, *bl), args.repeat),
@@ -132,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
             n,
             s._P,
             s._IA,
-            nb,
+            nbf,
+            pstart,
             nown,
             hist,
             s._live,

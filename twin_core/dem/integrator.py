@@ -25,7 +25,7 @@ import numpy as np
 from numba import get_thread_id, njit, prange
 
 from .meshes import add_mesh_contacts, update_mesh
-from .pairs import chunk_sums, gather_pair_slots, mark_live, pair_pass, pair_scatter
+from .pairs import chunk_sums, flatten_pairs, gather_pair_slots, pair_pass, pair_scatter
 from .partition import rebuild, rebuild_due
 from .space import FMA, min_image
 from .walls import add_cylinder_contacts, add_plane_contacts
@@ -165,8 +165,8 @@ def gather_pass(
 
 @njit(cache=True)
 def _forces_and_kick(
-    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, live, clist, work, pf, acc,
-    bounds, c,
+    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live, clist,
+    work, pf, acc, bounds, c,
     tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
     planes, cyls, pt, dom, per, grav, dt, t, serial, predict_next, XB, rm, sinks, disp2,
 ):  # fmt: skip
@@ -174,13 +174,13 @@ def _forces_and_kick(
     chunked scatter (``serial``) or pass 1, then pass 2 (:func:`gather_pass`)."""
     if serial:
         pair_scatter(
-            n, P, IA, nb_b[c], nown_b[c], hist_b[c], live, clist, work, F, acc, bounds, pt, dom,
-            per, dt,
+            n, P, IA, nbf, pstart, nown_b[c], hist_b[c], live, clist, work, F, acc, bounds, pt,
+            dom, per, dt,
         )  # fmt: skip
     else:
         pair_pass(
-            n, P, IA, nb_b[c], nown_b[c], hist_b[c], live, clist, work, pf, bounds, pt, dom, per,
-            dt,
+            n, P, IA, nbf, pstart, nown_b[c], hist_b[c], live, clist, work, pf, bounds, pt, dom,
+            per, dt,
         )  # fmt: skip
     gather_pass(
         n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc, bounds,
@@ -193,8 +193,8 @@ def _forces_and_kick(
 @njit(cache=True)
 def advance(
     nsteps, step0, dt, n, P, F, IA, XB, rm, disp2, whist,
-    nb_b, hist_b, nown_b, rev_o, rev_k, nrev, live, clist, work, pf, acc, bounds, cur,
-    tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x0, tri_x, tri_xb, tri_mesh, mesh_par, any_moving,
+    nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live, clist, work, pf, acc, bounds,
+    cur, tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x0, tri_x, tri_xb, tri_mesh, mesh_par, any_moving,
     planes, cyls, sinks, pt, dom, per, grav, skin, rmax, removed, counters, serial,
 ):  # fmt: skip
     """Advance up to ``nsteps`` velocity-Verlet steps.
@@ -207,7 +207,8 @@ def advance(
     size) before calling again.
     """
     meshes_move = any_moving and tri_x.shape[0] > 0
-    mark_live(n, nown_b[cur[0]], hist_b[cur[0]], live)
+    c = cur[0]
+    flatten_pairs(n, nb_b[c], nown_b[c], hist_b[c], pstart, nbf, live)
     predict(n, P, F, XB, rm, dom, per, sinks, dt, disp2)
     for s in range(nsteps):
         t_new = (step0 + s + 1) * dt
@@ -225,15 +226,16 @@ def advance(
                 counters[2] = needed
                 return status, s, n
             n = n_new
-            mark_live(n, nown_b[cur[0]], hist_b[cur[0]], live)
+            c = cur[0]
+            flatten_pairs(n, nb_b[c], nown_b[c], hist_b[c], pstart, nbf, live)
             counters[0] = 0
             counters[1] += 1
             if meshes_move:
                 update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
         kick_drift(n, P, F, dom, per, dt)
         _forces_and_kick(
-            n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, live, clist, work, pf,
-            acc, bounds, cur[0],
+            n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live,
+            clist, work, pf, acc, bounds, cur[0],
             tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
             planes, cyls, pt, dom, per, grav, dt, t_new, serial, True, XB, rm, sinks, disp2,
         )  # fmt: skip
@@ -242,8 +244,8 @@ def advance(
 
 @njit(cache=True)
 def compute_forces(
-    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, live, clist, work, pf, acc,
-    bounds, cur,
+    n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live, clist,
+    work, pf, acc, bounds, cur,
     tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
     planes, cyls, pt, dom, per, grav, dt, t, serial,
 ):  # fmt: skip
@@ -256,10 +258,10 @@ def compute_forces(
     th = thist_b[c].copy()
     wh = whist.copy()
     v = P[:n, 3:9].copy()
-    mark_live(n, nown_b[c], hist_b[c], live)
+    flatten_pairs(n, nb_b[c], nown_b[c], hist_b[c], pstart, nbf, live)
     _forces_and_kick(
-        n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, live, clist, work, pf, acc,
-        bounds, c,
+        n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live, clist,
+        work, pf, acc, bounds, c,
         tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
         planes, cyls, pt, dom, per, grav, dt, t, serial,
         False, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 6)), np.zeros(0),

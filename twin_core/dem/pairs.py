@@ -23,10 +23,13 @@ the contact model but with the model vectorised): the pairs in contact are found
 :data:`BLOCK` contacts: their inputs copied into the rows of a small buffer
 (:func:`_load_block`), the law computed over the block by one loop that the compiler turns into
 SIMD code (:func:`contact_block`: the scalar law of :mod:`twin_core.dem.contact`, inlined), and
-the results added in contact order. Work arrays: ``live`` (cap, kown) uint8, the pairs whose
-spring may be non-zero (:func:`mark_live`); ``clist`` (2, cap * kown) int32, the contacts of
-each chunk from offset ``bounds[c] * kown``; ``work`` (chunks, :data:`BLOCK_WORDS`), one block
-buffer per chunk.
+the results added in contact order. Work arrays, derived from the lists after each rebuild and
+before each run of steps (:func:`flatten_pairs`): ``pstart`` (cap + 1) and ``nbf`` (cap * kown)
+int32, the half list packed (owner i's partners are ``nbf[pstart[i]:pstart[i + 1]]``: the
+loops over all listed pairs read 4 bytes per pair, not the rows of ``nb`` padded to the widest
+row), and ``live`` (cap * kown) uint8, the packed pairs whose spring may be non-zero; ``clist``
+(3, cap * kown) int32, the contacts (owner, slot, partner) of each chunk from offset
+``pstart[bounds[c]]``; ``work`` (chunks, :data:`BLOCK_WORDS`), one block buffer per chunk.
 
 Pair slot ``pf[i, k]``: force on i (3), torque on i (3), torque on j (3), delta/2 (1; 0 for a
 slot not in contact). The torque of the tangential force on i is ``(R_i - delta/2) n x F_t``
@@ -62,8 +65,8 @@ __all__ = [
     "chunk_sums",
     "contact_block",
     "find_contacts",
+    "flatten_pairs",
     "gather_pair_slots",
-    "mark_live",
     "pair_pass",
     "pair_scatter",
 ]
@@ -79,20 +82,27 @@ BLOCK_WORDS = (_NIN + _NOUT) * _ROW
 
 
 @njit(cache=True)
-def mark_live(n, nown, hist, live):
-    """``live[i, k] = 1`` where the listed pair's tangential spring ``hist[i, k]`` is not zero
-    (the pairs whose spring must be cleared when they are found apart; derived from the
-    springs, so it is rebuilt after each list rebuild and before each run of steps)."""
+def flatten_pairs(n, nb, nown, hist, pstart, nbf, live):
+    """The half list ``nb`` packed: ``pstart[i]`` the first packed pair of owner i, ``nbf[p]``
+    the partner of packed pair p (slot ``p - pstart[i]`` of owner i), and ``live[p] = 1`` where
+    that pair's tangential spring is not zero (the pairs whose spring must be cleared when they
+    are found apart). Derived from the lists and springs, so it is redone after each list
+    rebuild and before each run of steps."""
+    p = 0
     for i in range(n):
+        pstart[i] = p
         for k in range(nown[i]):
-            live[i, k] = (hist[i, k, 0] != 0.0) | (hist[i, k, 1] != 0.0) | (hist[i, k, 2] != 0.0)
+            nbf[p] = nb[i, k]
+            live[p] = (hist[i, k, 0] != 0.0) | (hist[i, k, 1] != 0.0) | (hist[i, k, 2] != 0.0)
+            p += 1
+    pstart[n] = p
 
 
 @njit(cache=True, fastmath=FMA)
-def find_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, off):
+def find_contacts(lo, hi, P, nbf, pstart, hist, live, dom, per, clist, off):
     """The owned pairs of owners ``lo .. hi-1`` in contact, in owner then slot order, written as
-    (owner, slot) to ``clist[:, off:]``; returns their count. A listed pair found apart has its
-    spring cleared if it was live.
+    (owner, slot, partner) to ``clist[:, off:]``; returns their count. A listed pair found apart
+    has its spring cleared if it was live (packed lists of :func:`flatten_pairs`).
 
     Branch-free on the contact test (taken about one time in four, unpredictably): each listed
     pair is written to the next free entry, which is kept when the pair is in contact; the
@@ -103,25 +113,27 @@ def find_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, off):
     for i in range(lo, hi):
         xi, yi, zi = P[i, 0], P[i, 1], P[i, 2]
         ri = P[i, 9]
-        for k in range(nown[i]):
-            j = nb[i, k]
+        first = pstart[i]
+        for p in range(first, pstart[i + 1]):
+            j = nbf[p]
             dx = min_image(P[j, 0] - xi, l0, p0)
             dy = min_image(P[j, 1] - yi, l1, p1)
             dz = min_image(P[j, 2] - zi, l2, p2)
             rs = ri + P[j, 9]
             touch = np.uint8(dx * dx + dy * dy + dz * dz < rs * rs)
             clist[0, m] = i
-            clist[1, m] = k
+            clist[1, m] = p - first
+            clist[2, m] = j
             m += np.int64(touch)
-            stale = live[i, k] > touch
-            live[i, k] = touch
+            stale = live[p] > touch
+            live[p] = touch
             if stale:
-                clear_history(hist, i, k)
+                clear_history(hist, i, p - first)
     return m - off
 
 
 @njit(cache=True)
-def _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w):
+def _load_block(clist, q0, nq, P, IA, hist, pt, dom, per, w):
     """Copy the inputs of contacts ``clist[:, q0:q0+nq]`` into the rows of the block buffer
     ``w`` (one row per quantity, one column per contact): separation (3), radii and masses (4),
     relative velocity (3), angular velocities (6), inverse-inertia sum, spring (3), material
@@ -132,7 +144,7 @@ def _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w):
     for q in range(nq):
         i = clist[0, q0 + q]
         k = clist[1, q0 + q]
-        j = nb[i, k]
+        j = clist[2, q0 + q]
         w[q] = min_image(P[j, 0] - P[i, 0], l0, p0)
         w[_ROW + q] = min_image(P[j, 1] - P[i, 1], l1, p1)
         w[2 * _ROW + q] = min_image(P[j, 2] - P[i, 2], l2, p2)
@@ -260,32 +272,32 @@ def _store_springs(clist, q0, nq, hist, w):
 
 
 @njit(cache=True, inline="always")
-def _chunk_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, w):
+def _chunk_contacts(lo, hi, P, nbf, pstart, hist, live, dom, per, clist, w):
     """The contacts of the chunk of owners ``lo .. hi-1`` (:func:`find_contacts`) from their offset
-    ``lo * kown`` in ``clist``, the block buffer ``w`` made ready: returns (offset, count)."""
-    off = lo * nb.shape[1]
-    m = find_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, off)
+    ``pstart[lo]`` in ``clist``, the block buffer ``w`` made ready: returns (offset, count)."""
+    off = pstart[lo]
+    m = find_contacts(lo, hi, P, nbf, pstart, hist, live, dom, per, clist, off)
     _forget_pairs(w)
     return off, m
 
 
 @njit(cache=True, inline="always")
-def _evaluate_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w, dt):
+def _evaluate_block(clist, q0, nq, P, IA, hist, pt, dom, per, w, dt):
     """Contacts ``clist[:, q0:q0+nq]``: inputs into ``w``, the law over the block, the new
     springs back to ``hist``; the forces and torques are left in ``w``."""
-    _load_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w)
+    _load_block(clist, q0, nq, P, IA, hist, pt, dom, per, w)
     contact_block(nq, w, dt)
     _store_springs(clist, q0, nq, hist, w)
 
 
 @njit(cache=True, inline="always")
-def _scatter_block(clist, q0, nq, nb, w, a):
+def _scatter_block(clist, q0, nq, w, a):
     """Add the block's forces and torques to both particles of each contact, in contact order
     (owner i: + force, + torque on i; partner j: - force, + torque on j)."""
     o = _NIN * _ROW
     for q in range(nq):
         i = clist[0, q0 + q]
-        j = nb[i, clist[1, q0 + q]]
+        j = clist[2, q0 + q]
         f0, f1, f2 = w[o + q], w[o + _ROW + q], w[o + 2 * _ROW + q]
         a[i, 0] += f0
         a[i, 1] += f1
@@ -313,7 +325,7 @@ def _slot_block(clist, q0, nq, w, pf):
 
 
 @njit(cache=True, parallel=True, fastmath=FMA)
-def pair_pass(n, P, IA, nb, nown, hist, live, clist, work, pf, bounds, pt, dom, per, dt):
+def pair_pass(n, P, IA, nbf, pstart, nown, hist, live, clist, work, pf, bounds, pt, dom, per, dt):
     """Pass 1 (parallel scheme): evaluate each owned pair once; write ``pf[i, k]`` and update
     ``hist[i, k]``.
 
@@ -331,10 +343,10 @@ def pair_pass(n, P, IA, nb, nown, hist, live, clist, work, pf, bounds, pt, dom, 
         for i in range(lo, hi):
             for k in range(nown[i]):
                 pf[i, k, 9] = 0.0  # not in contact unless written below
-        off, m = _chunk_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, w)
+        off, m = _chunk_contacts(lo, hi, P, nbf, pstart, hist, live, dom, per, clist, w)
         for q0 in range(off, off + m, BLOCK):
             nq = min(BLOCK, off + m - q0)
-            _evaluate_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w, dt)
+            _evaluate_block(clist, q0, nq, P, IA, hist, pt, dom, per, w, dt)
             _slot_block(clist, q0, nq, w, pf)
 
 
@@ -361,7 +373,9 @@ def chunk_bounds(n, nown, bounds):
 
 
 @njit(cache=True, parallel=True, fastmath=FMA)
-def pair_scatter(n, P, IA, nb, nown, hist, live, clist, work, F, acc, bounds, pt, dom, per, dt):
+def pair_scatter(
+    n, P, IA, nbf, pstart, nown, hist, live, clist, work, F, acc, bounds, pt, dom, per, dt
+):
     """Scatter scheme: evaluate each owned pair once and add its force and torques straight to
     both particles' sums (Newton's third law), without the pair buffer of :func:`pair_pass`.
 
@@ -389,11 +403,11 @@ def pair_scatter(n, P, IA, nb, nown, hist, live, clist, work, F, acc, bounds, pt
         for i in range(lo, n):
             for e in range(6):
                 a[i, e] = 0.0
-        off, m = _chunk_contacts(lo, hi, P, nb, nown, hist, live, dom, per, clist, w)
+        off, m = _chunk_contacts(lo, hi, P, nbf, pstart, hist, live, dom, per, clist, w)
         for q0 in range(off, off + m, BLOCK):
             nq = min(BLOCK, off + m - q0)
-            _evaluate_block(clist, q0, nq, P, IA, nb, hist, pt, dom, per, w, dt)
-            _scatter_block(clist, q0, nq, nb, w, a)
+            _evaluate_block(clist, q0, nq, P, IA, hist, pt, dom, per, w, dt)
+            _scatter_block(clist, q0, nq, w, a)
 
 
 @njit(cache=True, inline="always")

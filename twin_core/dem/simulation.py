@@ -193,8 +193,10 @@ class Simulation:
         self._acc = np.zeros((self.pair_chunks - 1, cap, 6))
         self._bounds = np.zeros(self.pair_chunks + 1, np.int64)
         # work arrays of the batched contact law (twin_core.dem.pairs), derived each step
-        self._live = np.zeros((cap, kown), np.uint8)
-        self._clist = np.zeros((2, cap * kown), np.int32)
+        self._pstart = np.zeros(cap + 1, np.int64)
+        self._nbf = np.zeros(cap * kown, np.int32)
+        self._live = np.zeros(cap * kown, np.uint8)
+        self._clist = np.zeros((3, cap * kown), np.int32)
         self._work = np.zeros((self.pair_chunks, BLOCK_WORDS))
         self._rev_o = np.zeros((cap, krev), np.int32)
         self._rev_k = np.zeros((cap, krev), np.int32)
@@ -853,7 +855,8 @@ class Simulation:
         self._chunk_buffers()
         compute_forces(
             self._n, self._P, self._F, self._IA, self._whist, self._nb, self._hist, self._nown,
-            self._rev_o, self._rev_k, self._nrev, self._live, self._clist, self._work, self._pf,
+            self._rev_o, self._rev_k, self._nrev, self._pstart, self._nbf, self._live, self._clist,
+            self._work, self._pf,
             self._acc, self._bounds, self._cur,
             self._tri_nb, self._thist, self._ntri, self._tri_tmp, self._tri_x, self._tri_mesh,
             self._mesh_par, self._planes, self._cyls, self._pt, self._dom, self._per,
@@ -972,7 +975,7 @@ class Simulation:
             chunk, self._step, dt, self._n, self._P, self._F, self._IA, self._XB,
             self._rm, self._disp2, self._whist,
             self._nb, self._hist, self._nown, self._rev_o, self._rev_k, self._nrev,
-            self._live, self._clist, self._work,
+            self._pstart, self._nbf, self._live, self._clist, self._work,
             self._pf, self._acc, self._bounds, self._cur, self._tri_nb, self._thist, self._ntri,
             self._tri_tmp, self._tri_x0, self._tri_x, self._tri_xb, self._tri_mesh,
             self._mesh_par,

@@ -10,7 +10,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from twin_core.dem.pairs import _NIN, _ROW, BLOCK, BLOCK_WORDS, contact_block, find_contacts
+from twin_core.dem.pairs import (
+    _NIN,
+    _ROW,
+    BLOCK,
+    BLOCK_WORDS,
+    contact_block,
+    find_contacts,
+    flatten_pairs,
+)
 
 DT = 2e-6
 
@@ -135,7 +143,7 @@ def test_block_law_gives_the_same_bits_in_any_column(col0, m):
 def test_a_spring_is_cleared_when_its_pair_parts_between_rebuilds():
     """find_contacts keeps the spring of a pair in contact, clears it when the pair is found
     apart (LAMMPS clears the shear history when a listed pair stops touching) and records
-    which springs may be live."""
+    which springs may be live (derived from the springs when the lists are packed)."""
     P = np.zeros((2, 13))
     P[:, 9] = 1e-3
     P[1, 0] = 1.9e-3  # overlapping
@@ -143,16 +151,20 @@ def test_a_spring_is_cleared_when_its_pair_parts_between_rebuilds():
     nown = np.array([1, 0], np.int64)
     hist = np.zeros((2, 1, 3))
     hist[0, 0] = (1e-7, 0.0, 2e-7)
-    live = np.ones((2, 1), np.uint8)
-    clist = np.zeros((2, 2), np.int32)
+    pstart = np.zeros(3, np.int64)
+    nbf = np.zeros(2, np.int32)
+    live = np.zeros(2, np.uint8)
+    flatten_pairs(2, nb, nown, hist, pstart, nbf, live)
+    assert pstart.tolist() == [0, 1, 1] and nbf[0] == 1 and live[0] == 1
+    clist = np.zeros((3, 2), np.int32)
     dom = np.array([0, 0, 0, 1, 1, 1, 1, 1, 1.0])
     per = np.zeros(3, np.int64)
-    assert find_contacts(0, 2, P, nb, nown, hist, live, dom, per, clist, 0) == 1
-    assert clist[:, 0].tolist() == [0, 0] and live[0, 0] == 1
+    assert find_contacts(0, 2, P, nbf, pstart, hist, live, dom, per, clist, 0) == 1
+    assert clist[:, 0].tolist() == [0, 0, 1] and live[0] == 1
     assert hist[0, 0].tolist() == [1e-7, 0.0, 2e-7]
     P[1, 0] = 2.1e-3  # apart, still listed
-    assert find_contacts(0, 2, P, nb, nown, hist, live, dom, per, clist, 0) == 0
-    assert hist[0, 0].tolist() == [0.0, 0.0, 0.0] and live[0, 0] == 0
+    assert find_contacts(0, 2, P, nbf, pstart, hist, live, dom, per, clist, 0) == 0
+    assert hist[0, 0].tolist() == [0.0, 0.0, 0.0] and live[0] == 0
 
 
 def test_each_contact_takes_its_material_pair_from_the_current_tables():
@@ -175,8 +187,11 @@ def test_each_contact_takes_its_material_pair_from_the_current_tables():
     nb[:, 0] = np.minimum(np.arange(n) + 1, n - 1)
     nown = np.array([1, 1, 1, 1, 0], np.int64)
     hist = np.zeros((n, 1, 3))
-    live = np.zeros((n, 1), np.uint8)
-    clist = np.zeros((2, n), np.int32)
+    pstart = np.zeros(n + 1, np.int64)
+    nbf = np.zeros(n, np.int32)
+    live = np.zeros(n, np.uint8)
+    flatten_pairs(n, nb, nown, hist, pstart, nbf, live)
+    clist = np.zeros((3, n), np.int32)
     work = np.zeros((1, BLOCK_WORDS))
     F = np.zeros((n, 6))  # the one chunk sums into F
     acc = np.zeros((0, n, 6))
@@ -189,7 +204,23 @@ def test_each_contact_takes_its_material_pair_from_the_current_tables():
     for e01 in (2e8, 7e8):
         pt[0] = [[1e8, e01], [e01, 4e8]]
         pair_scatter(
-            n, P, IA, nb, nown, hist, live, clist, work, F, acc, bounds, pt, dom, per, 1e-7
+            n,
+            P,
+            IA,
+            nbf,
+            pstart,
+            nown,
+            hist,
+            live,
+            clist,
+            work,
+            F,
+            acc,
+            bounds,
+            pt,
+            dom,
+            per,
+            1e-7,
         )
         e_pairs = np.array([e01, e01, e01, 4e8])  # contacts 0-1, 1-2, 2-3, 3-4
         f = 4 / 3 * e_pairs * np.sqrt(r / 2) * delta**1.5
