@@ -6,23 +6,44 @@ the same claims can be checked on other samples of the same physics (``make test
 
 Each pytest-xdist worker gets its own numba cache directory: two processes compiling the same
 cached function into one ``__pycache__`` at once can leave a corrupt cache entry on a fresh
-clone. Set before any test module imports numba.
+clone. The directory is keyed by a hash of the package's sources: numba checks a cached kernel
+against its own file only, so after an edit to a function that kernels of other files inline,
+a cache keyed per file would run the old code in the tests. Caches of other source states are
+removed by the controlling process. Set before any test module imports numba.
 """
 
+import hashlib
 import os
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
-os.environ.setdefault(
-    "NUMBA_CACHE_DIR",
-    str(
-        Path(__file__).resolve().parent.parent
-        / ".numba_cache"
-        / os.environ.get("PYTEST_XDIST_WORKER", "main")
-    ),
-)
+_ROOT = Path(__file__).resolve().parent.parent
+
+
+def _source_key() -> str:
+    """A short hash of every Python source of the package (paths and contents)."""
+    h = hashlib.sha256()
+    for path in sorted((_ROOT / "twin_core").rglob("*.py")):
+        h.update(str(path.relative_to(_ROOT)).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _numba_cache_dir() -> Path:
+    """``.numba_cache/<source hash>/<worker>``; the controller removes the other hashes."""
+    base = _ROOT / ".numba_cache"
+    key = _source_key()
+    if "PYTEST_XDIST_WORKER" not in os.environ and base.is_dir():
+        for old in base.iterdir():
+            if old.name != key:
+                shutil.rmtree(old, ignore_errors=True)
+    return base / key / os.environ.get("PYTEST_XDIST_WORKER", "main")
+
+
+os.environ.setdefault("NUMBA_CACHE_DIR", str(_numba_cache_dir()))
 os.environ.setdefault("MPLBACKEND", "Agg")
 # small dense products: threaded BLAS on a 2-core machine shared by two workers is far slower
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
