@@ -6,10 +6,11 @@ the same claims can be checked on other samples of the same physics (``make test
 
 Each pytest-xdist worker gets its own numba cache directory: two processes compiling the same
 cached function into one ``__pycache__`` at once can leave a corrupt cache entry on a fresh
-clone. The directory is keyed by a hash of the package's sources: numba checks a cached kernel
-against its own file only, so after an edit to a function that kernels of other files inline,
-a cache keyed per file would run the old code in the tests. Caches of other source states are
-removed by the controlling process. Set before any test module imports numba.
+clone (the workers inherit the controller's environment, so the directory is set in each). The
+directory is keyed by a hash of the package's sources: numba checks a cached kernel against its
+own file only, so after an edit to a function that kernels of other files inline, a cache keyed
+per file would run the old code in the tests. Caches of other source states are removed by the
+controlling process. Set before any test module imports numba.
 """
 
 import hashlib
@@ -43,7 +44,11 @@ def _numba_cache_dir() -> Path:
     return base / key / os.environ.get("PYTEST_XDIST_WORKER", "main")
 
 
-os.environ.setdefault("NUMBA_CACHE_DIR", str(_numba_cache_dir()))
+# xdist workers inherit the controller's environment: the controller's directory (under
+# .numba_cache) is replaced by the worker's own; a directory the user chose is kept
+_inherited = os.environ.get("NUMBA_CACHE_DIR")
+if _inherited is None or Path(_inherited).is_relative_to(_ROOT / ".numba_cache"):
+    os.environ["NUMBA_CACHE_DIR"] = str(_numba_cache_dir())
 os.environ.setdefault("MPLBACKEND", "Agg")
 # small dense products: threaded BLAS on a 2-core machine shared by two workers is far slower
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
