@@ -201,7 +201,8 @@ def add_wall_contact(
     fx, fy, fz, tx, ty, tz,
 ):  # fmt: skip
     """Add to sphere i's force and torque sums (fx .. tz) its :func:`wall_contact` (state row
-    ``P[i]``, material ``IA[i, 1]``, spring ``hist[i, k]``). Returns the new (fx, fy, fz, tx, ty, tz)."""
+    ``P[i]``, material ``IA[i, 1]``, spring ``hist[i, k]``). Returns the new
+    (fx, fy, fz, tx, ty, tz)."""
     a, b, c, d, e, f = wall_contact(
         P[i, 3], P[i, 4], P[i, 5], P[i, 6], P[i, 7], P[i, 8], P[i, 9], P[i, 10], P[i, 12],
         IA[i, 1], nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, i, k, dt,

@@ -120,9 +120,23 @@ def _pick(k, a, b):
 
 
 @njit(cache=True, inline="always")
+def _image_contact(qx, qy, qz, tri_x, tq, ax, ay, az, nx, ny, nz, nn, best):
+    """Closest point c of triangle ``tri_x[tq]`` (first vertex a, normal n, ``nn = |n|^2``) to
+    the image q, if q's distance to the triangle's plane is below ``sqrt(best)``:
+    (cx, cy, cz, feature, |q - c|^2), the squared distance ``inf`` when the plane is out of
+    reach (then so is the triangle; no plane test for a degenerate triangle, ``nn = 0``)."""
+    dn = nx * (qx - ax) + ny * (qy - ay) + nz * (qz - az)
+    if dn * dn >= best * nn and nn > 0.0:
+        return qx, qy, qz, 0, math.inf
+    cx, cy, cz, feat = closest_point_triangle(qx, qy, qz, tri_x, tq)
+    return cx, cy, cz, feat, (qx - cx) ** 2 + (qy - cy) ** 2 + (qz - cz) ** 2
+
+
+@njit(cache=True, inline="always")
 def nearest_image_contact(px, py, pz, tri_x, tq, dom, per, reach2):
-    """Image q of point p nearest to triangle ``tri_x[tq]`` and its closest point c on the triangle:
-    (qx, qy, qz, cx, cy, cz, feature, d2), feature as in :func:`closest_point_triangle`, d2 = |q - c|^2.
+    """Image q of point p nearest to triangle ``tri_x[tq]`` and its closest point c on the
+    triangle: (qx, qy, qz, cx, cy, cz, feature, d2), feature as in
+    :func:`closest_point_triangle`, d2 = |q - c|^2.
 
     Along a periodic axis a triangle can come close to two images of p (a wall that spans the
     whole period, e.g. a trough extruded along the periodic axis): both are tried, the second
@@ -153,11 +167,9 @@ def nearest_image_contact(px, py, pz, tri_x, tq, dom, per, reach2):
         if gx0 * gx0 + gy0 * gy0 + gz0 * gz0 >= best:
             return out
         qx, qy, qz = px + sx0, py + sy0, pz + sz0
-        dn = nx * (qx - ax) + ny * (qy - ay) + nz * (qz - az)
-        if dn * dn >= best * nn and nn > 0.0:
-            return out
-        cx, cy, cz, feat = closest_point_triangle(qx, qy, qz, tri_x, tq)
-        d2 = (qx - cx) ** 2 + (qy - cy) ** 2 + (qz - cz) ** 2
+        cx, cy, cz, feat, d2 = _image_contact(
+            qx, qy, qz, tri_x, tq, ax, ay, az, nx, ny, nz, nn, best
+        )
         if d2 < best:
             out = (qx, qy, qz, cx, cy, cz, feat, d2)
         return out
@@ -172,11 +184,9 @@ def nearest_image_contact(px, py, pz, tri_x, tq, dom, per, reach2):
                 qx = px + _pick(a, sx0, sx1)
                 qy = py + _pick(b, sy0, sy1)
                 qz = pz + _pick(c, sz0, sz1)
-                dn = nx * (qx - ax) + ny * (qy - ay) + nz * (qz - az)
-                if dn * dn >= best * nn and nn > 0.0:
-                    continue  # the plane is out of reach: so is the triangle
-                cx, cy, cz, feat = closest_point_triangle(qx, qy, qz, tri_x, tq)
-                d2 = (qx - cx) ** 2 + (qy - cy) ** 2 + (qz - cz) ** 2
+                cx, cy, cz, feat, d2 = _image_contact(
+                    qx, qy, qz, tri_x, tq, ax, ay, az, nx, ny, nz, nn, best
+                )
                 if d2 < best:
                     best = d2
                     out = (qx, qy, qz, cx, cy, cz, feat, d2)
@@ -284,8 +294,8 @@ def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tm
                       t):  # fmt: skip
     """First sweep over the candidate triangles of particle i: closest point (cx, cy, cz),
     distance and feature of each triangle of an active mesh that the sphere overlaps, stored in
-    ``tri_tmp[tid, k]`` (the calling thread's scratch rows, (ktri, 8); feature -1: no contact, its history
-    cleared). Returns the contact count."""
+    ``tri_tmp[tid, k]`` (the calling thread's scratch rows, (ktri, 8); feature -1: no contact,
+    its history cleared). Returns the contact count."""
     x, y, z = P[i, 0], P[i, 1], P[i, 2]
     ri = P[i, 9]
     reach2 = ri * ri * (1.0 + 1e-9)  # a margin: the exact test is on the distance below

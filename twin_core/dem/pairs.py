@@ -384,10 +384,10 @@ def pair_scatter(
     buffer fewer to keep in cache), chunk c > 0 into its own buffer ``acc[c - 1]`` (rows
     ``bounds[c]`` to n: an owner's partners have larger indices), so the chunks run on as many
     threads as there are, race-free, and the gather adds ``F[i] + acc[0, i] + ...`` in chunk
-    order (:func:`chunk_sums`): the same sums for any thread count. Within a chunk the contacts are found in owner then slot order
-    (:func:`find_contacts`), evaluated block by block (:func:`contact_block`, vectorised) and
-    added in that order: particle j receives the contributions of its owners (ascending)
-    before its own slots (ascending). With one chunk that is the order in which
+    order (:func:`chunk_sums`): the same sums for any thread count. Within a chunk the contacts
+    are found in owner then slot order (:func:`find_contacts`), evaluated block by block
+    (:func:`contact_block`, vectorised) and added in that order: particle j receives the
+    contributions of its owners (ascending) before its own slots (ascending). With one chunk that is the order in which
     :func:`gather_pair_slots` sums the reverse then the owned slots: bit-identical to the
     two-pass scheme.
 
