@@ -69,7 +69,7 @@ def _part_kernels():
 
     @njit(fastmath=FMA)
     def find(n, P, nbf, pstart, hist, live, dom, per, clist):
-        return pa.find_contacts(0, n, P, nbf, pstart, hist, live, dom, per, clist, 0)
+        return pa.find_contacts(0, n, P, nbf, pstart, hist, live, dom, per, clist)
 
     @njit(fastmath=FMA)
     def blocks(m, stage, P, IA, hist, pt, dom, per, clist, w, a, dt):

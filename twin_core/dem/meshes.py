@@ -301,8 +301,8 @@ def _closest_contacts(i, P, nt, tri_nb, tri_x, tri_mesh, mesh_par, thist, tri_tm
     reach2 = ri * ri * (1.0 + 1e-9)  # a margin: the exact test is on the distance below
     ncont = 0
     for k in range(nt):
-        q = tri_nb[i, k]
-        mesh = tri_mesh[q]
+        q = np.uint64(tri_nb[i, k])  # unsigned: no wraparound code (space, "Indexing")
+        mesh = np.uint64(tri_mesh[q])
         tri_tmp[tid, k, 4] = -1.0
         if not (mesh_par[mesh, 13] <= t < mesh_par[mesh, 14]):
             clear_history(thist, i, k)
@@ -346,7 +346,7 @@ def _shadowing_contact(i, k, nt, tol, tri_tmp, tid, tri_nb, tri_x):
         if ddx * ddx + ddy * ddy + ddz * ddz < tol * tol:
             return k2
         if f2 == 10.0:
-            if dist_point_tri(cpx, cpy, cpz, tri_x, tri_nb[i, k2]) < tol:
+            if dist_point_tri(cpx, cpy, cpz, tri_x, np.uint64(tri_nb[i, k2])) < tol:
                 return k2
     return -1
 
@@ -377,8 +377,8 @@ def _add_triangle_contact(i, k, P, IA, tri_tmp, tid, tri_nb, tri_x, tri_mesh, me
     triangle k (contact point and distance from ``tri_tmp``); updates the history
     ``thist[i, k]``. Returns the new (fx, fy, fz, tx, ty, tz)."""
     cpx, cpy, cpz = tri_tmp[tid, k, 0], tri_tmp[tid, k, 1], tri_tmp[tid, k, 2]
-    q = tri_nb[i, k]
-    mesh = tri_mesh[q]
+    q = np.uint64(tri_nb[i, k])
+    mesh = np.uint64(tri_mesh[q])
     dist = tri_tmp[tid, k, 3]
     nx, ny, nz = tri_tmp[tid, k, 5], tri_tmp[tid, k, 6], tri_tmp[tid, k, 7]
     vwx, vwy, vwz, wwx, wwy, wwz = _wall_motion(mesh_par, mesh, t, cpx, cpy, cpz)

@@ -24,10 +24,11 @@ the contact model but with the model vectorised): the pairs in contact are found
 (:func:`_load_block`), the law computed over the block by one loop that the compiler turns into
 SIMD code (:func:`contact_block`: the scalar law of :mod:`twin_core.dem.contact`, inlined), and
 the results added in contact order. Work arrays, derived from the lists after each rebuild and
-before each run of steps (:func:`flatten_pairs`): ``pstart`` (cap + 1) and ``nbf`` (cap * kown)
-int32, the half list packed (owner i's partners are ``nbf[pstart[i]:pstart[i + 1]]``: the
-loops over all listed pairs read 4 bytes per pair, not the rows of ``nb`` padded to the widest
-row), and ``live`` (cap * kown) uint8, the packed pairs whose spring may be non-zero; ``clist``
+before each run of steps (:func:`flatten_pairs`): ``pstart`` (cap + 1) and ``nbf`` (2, cap *
+kown) int32, the half list packed (owner i's pairs are ``pstart[i]`` to ``pstart[i + 1]``, row 0
+their owner, row 1 their partner: the search over all listed pairs is one loop that reads 8
+bytes per pair, not a loop per owner over the rows of ``nb`` padded to the widest row), and
+``live`` (cap * kown) uint8, the packed pairs whose spring may be non-zero; ``clist``
 (3, cap * kown) int32, the contacts (owner, slot, partner) of each chunk from offset
 ``pstart[bounds[c]]``; ``work`` (chunks, :data:`BLOCK_WORDS`), one block buffer per chunk.
 
@@ -83,53 +84,55 @@ BLOCK_WORDS = (_NIN + _NOUT) * _ROW
 
 @njit(cache=True)
 def flatten_pairs(n, nb, nown, hist, pstart, nbf, live):
-    """The half list ``nb`` packed: ``pstart[i]`` the first packed pair of owner i, ``nbf[p]``
-    the partner of packed pair p (slot ``p - pstart[i]`` of owner i), and ``live[p] = 1`` where
-    that pair's tangential spring is not zero (the pairs whose spring must be cleared when they
-    are found apart). Derived from the lists and springs, so it is redone after each list
-    rebuild and before each run of steps."""
+    """The half list ``nb`` packed: ``pstart[i]`` the first packed pair of owner i, ``nbf[0, p]``
+    the owner and ``nbf[1, p]`` the partner of packed pair p (slot ``p - pstart[i]`` of owner
+    i), and ``live[p] = 1`` where that pair's tangential spring is not zero (the pairs whose
+    spring must be cleared when they are found apart). Derived from the lists and springs, so it
+    is redone after each list rebuild and before each run of steps."""
     p = 0
     for i in range(n):
         pstart[i] = p
         for k in range(nown[i]):
-            nbf[p] = nb[i, k]
+            nbf[0, p] = i
+            nbf[1, p] = nb[i, k]
             live[p] = (hist[i, k, 0] != 0.0) | (hist[i, k, 1] != 0.0) | (hist[i, k, 2] != 0.0)
             p += 1
     pstart[n] = p
 
 
 @njit(cache=True, fastmath=FMA)
-def find_contacts(lo, hi, P, nbf, pstart, hist, live, dom, per, clist, off):
+def find_contacts(lo, hi, P, nbf, pstart, hist, live, dom, per, clist):
     """The owned pairs of owners ``lo .. hi-1`` in contact, in owner then slot order, written as
-    (owner, slot, partner) to ``clist[:, off:]``; returns their count. A listed pair found apart
-    has its spring cleared if it was live (packed lists of :func:`flatten_pairs`).
+    (owner, slot, partner) to ``clist[:, pstart[lo]:]``; returns their count. A listed pair
+    found apart has its spring cleared if it was live (packed lists of :func:`flatten_pairs`).
 
-    Branch-free on the contact test (taken about one time in four, unpredictably): each listed
-    pair is written to the next free entry, which is kept when the pair is in contact; the
-    spring is cleared under ``live > in contact``, rarely true."""
+    One loop over the packed pairs (not a loop per owner: the exit of an inner loop of a few
+    pairs is mispredicted once per owner), branch-free on the contact test (taken about one
+    time in four, unpredictably): each listed pair is written to the next free entry, which is
+    kept when the pair is in contact; the spring is cleared under ``live > in contact``, rarely
+    true. Indices read from arrays are cast to unsigned (:mod:`twin_core.dem.space`, "Indexing")."""
     l0, l1, l2 = dom[6], dom[7], dom[8]
     p0, p1, p2 = per[0] != 0, per[1] != 0, per[2] != 0
+    off = np.uint64(pstart[lo])
     m = off
-    for i in range(lo, hi):
-        xi, yi, zi = P[i, 0], P[i, 1], P[i, 2]
-        ri = P[i, 9]
-        first = pstart[i]
-        for p in range(first, pstart[i + 1]):
-            j = nbf[p]
-            dx = min_image(P[j, 0] - xi, l0, p0)
-            dy = min_image(P[j, 1] - yi, l1, p1)
-            dz = min_image(P[j, 2] - zi, l2, p2)
-            rs = ri + P[j, 9]
-            touch = np.uint8(dx * dx + dy * dy + dz * dz < rs * rs)
-            clist[0, m] = i
-            clist[1, m] = p - first
-            clist[2, m] = j
-            m += np.int64(touch)
-            stale = live[p] > touch
-            live[p] = touch
-            if stale:
-                clear_history(hist, i, p - first)
-    return m - off
+    for p in range(off, np.uint64(pstart[hi])):
+        i = np.uint64(nbf[0, p])
+        j = np.uint64(nbf[1, p])
+        dx = min_image(P[j, 0] - P[i, 0], l0, p0)
+        dy = min_image(P[j, 1] - P[i, 1], l1, p1)
+        dz = min_image(P[j, 2] - P[i, 2], l2, p2)
+        rs = P[i, 9] + P[j, 9]
+        touch = np.uint8(dx * dx + dy * dy + dz * dz < rs * rs)
+        k = np.uint32(p - np.uint64(pstart[i]))
+        clist[0, m] = i
+        clist[1, m] = k
+        clist[2, m] = j
+        m += np.uint64(touch)
+        stale = live[p] > touch
+        live[p] = touch
+        if stale:
+            clear_history(hist, i, k)
+    return np.int64(m - off)
 
 
 @njit(cache=True)
@@ -142,9 +145,9 @@ def _load_block(clist, q0, nq, P, IA, hist, pt, dom, per, w):
     l0, l1, l2 = dom[6], dom[7], dom[8]
     p0, p1, p2 = per[0] != 0, per[1] != 0, per[2] != 0
     for q in range(nq):
-        i = clist[0, q0 + q]
-        k = clist[1, q0 + q]
-        j = clist[2, q0 + q]
+        i = np.uint64(clist[0, q0 + q])
+        k = np.uint64(clist[1, q0 + q])
+        j = np.uint64(clist[2, q0 + q])
         w[q] = min_image(P[j, 0] - P[i, 0], l0, p0)
         w[_ROW + q] = min_image(P[j, 1] - P[i, 1], l1, p1)
         w[2 * _ROW + q] = min_image(P[j, 2] - P[i, 2], l2, p2)
@@ -264,8 +267,8 @@ def _store_springs(clist, q0, nq, hist, w):
     """Write the block's new springs back to ``hist``."""
     o = (_NIN + 10) * _ROW
     for q in range(nq):
-        i = clist[0, q0 + q]
-        k = clist[1, q0 + q]
+        i = np.uint64(clist[0, q0 + q])
+        k = np.uint64(clist[1, q0 + q])
         hist[i, k, 0] = w[o + q]
         hist[i, k, 1] = w[o + _ROW + q]
         hist[i, k, 2] = w[o + 2 * _ROW + q]
@@ -276,7 +279,7 @@ def _chunk_contacts(lo, hi, P, nbf, pstart, hist, live, dom, per, clist, w):
     """The contacts of the chunk of owners ``lo .. hi-1`` (:func:`find_contacts`) from their offset
     ``pstart[lo]`` in ``clist``, the block buffer ``w`` made ready: returns (offset, count)."""
     off = pstart[lo]
-    m = find_contacts(lo, hi, P, nbf, pstart, hist, live, dom, per, clist, off)
+    m = find_contacts(lo, hi, P, nbf, pstart, hist, live, dom, per, clist)
     _forget_pairs(w)
     return off, m
 
@@ -296,8 +299,8 @@ def _scatter_block(clist, q0, nq, w, a):
     (owner i: + force, + torque on i; partner j: - force, + torque on j)."""
     o = _NIN * _ROW
     for q in range(nq):
-        i = clist[0, q0 + q]
-        j = clist[2, q0 + q]
+        i = np.uint64(clist[0, q0 + q])
+        j = np.uint64(clist[2, q0 + q])
         f0, f1, f2 = w[o + q], w[o + _ROW + q], w[o + 2 * _ROW + q]
         a[i, 0] += f0
         a[i, 1] += f1
@@ -318,8 +321,8 @@ def _slot_block(clist, q0, nq, w, pf):
     """Write the block's results to the pair slots ``pf[i, k]`` (two-pass scheme)."""
     o = _NIN * _ROW
     for q in range(nq):
-        i = clist[0, q0 + q]
-        k = clist[1, q0 + q]
+        i = np.uint64(clist[0, q0 + q])
+        k = np.uint64(clist[1, q0 + q])
         for e in range(10):
             pf[i, k, e] = w[o + e * _ROW + q]
 

@@ -194,7 +194,7 @@ class Simulation:
         self._bounds = np.zeros(self.pair_chunks + 1, np.int64)
         # work arrays of the batched contact law (twin_core.dem.pairs), derived each step
         self._pstart = np.zeros(cap + 1, np.int64)
-        self._nbf = np.zeros(cap * kown, np.int32)
+        self._nbf = np.zeros((2, cap * kown), np.int32)
         self._live = np.zeros(cap * kown, np.uint8)
         self._clist = np.zeros((3, cap * kown), np.int32)
         self._work = np.zeros((self.pair_chunks, BLOCK_WORDS))

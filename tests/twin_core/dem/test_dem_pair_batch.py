@@ -152,18 +152,18 @@ def test_a_spring_is_cleared_when_its_pair_parts_between_rebuilds():
     hist = np.zeros((2, 1, 3))
     hist[0, 0] = (1e-7, 0.0, 2e-7)
     pstart = np.zeros(3, np.int64)
-    nbf = np.zeros(2, np.int32)
+    nbf = np.zeros((2, 2), np.int32)
     live = np.zeros(2, np.uint8)
     flatten_pairs(2, nb, nown, hist, pstart, nbf, live)
-    assert pstart.tolist() == [0, 1, 1] and nbf[0] == 1 and live[0] == 1
+    assert pstart.tolist() == [0, 1, 1] and nbf[:, 0].tolist() == [0, 1] and live[0] == 1
     clist = np.zeros((3, 2), np.int32)
     dom = np.array([0, 0, 0, 1, 1, 1, 1, 1, 1.0])
     per = np.zeros(3, np.int64)
-    assert find_contacts(0, 2, P, nbf, pstart, hist, live, dom, per, clist, 0) == 1
+    assert find_contacts(0, 2, P, nbf, pstart, hist, live, dom, per, clist) == 1
     assert clist[:, 0].tolist() == [0, 0, 1] and live[0] == 1
     assert hist[0, 0].tolist() == [1e-7, 0.0, 2e-7]
     P[1, 0] = 2.1e-3  # apart, still listed
-    assert find_contacts(0, 2, P, nbf, pstart, hist, live, dom, per, clist, 0) == 0
+    assert find_contacts(0, 2, P, nbf, pstart, hist, live, dom, per, clist) == 0
     assert hist[0, 0].tolist() == [0.0, 0.0, 0.0] and live[0] == 0
 
 
@@ -188,7 +188,7 @@ def test_each_contact_takes_its_material_pair_from_the_current_tables():
     nown = np.array([1, 1, 1, 1, 0], np.int64)
     hist = np.zeros((n, 1, 3))
     pstart = np.zeros(n + 1, np.int64)
-    nbf = np.zeros(n, np.int32)
+    nbf = np.zeros((2, n), np.int32)
     live = np.zeros(n, np.uint8)
     flatten_pairs(n, nb, nown, hist, pstart, nbf, live)
     clist = np.zeros((3, n), np.int32)
