@@ -121,6 +121,7 @@ def _carry_history(hist_new, i, cnt, nb_old, n_old, hist_old, row, key, sign):
     h0 = 0.0
     h1 = 0.0
     h2 = 0.0
+    row = np.uint64(row)
     for kk in range(n_old[row]):
         if nb_old[row, kk] == key:
             h0 = sign * hist_old[row, kk, 0]
@@ -144,7 +145,8 @@ def _build_own(
     over = 0
     for i in prange(n_new):
         oi = perm[i]
-        xi, yi, zi, ri = P[oi, 0], P[oi, 1], P[oi, 2], P[oi, 9]
+        oiu = np.uint64(oi)  # unsigned indices: no wraparound code (space, "Indexing")
+        xi, yi, zi, ri = P[oiu, 0], P[oiu, 1], P[oiu, 2], P[oiu, 9]
         c = cell_of_new[i]
         fx, mx = axis_span(c // (ncz * ncy), ncx, p0)
         fy, my = axis_span((c // ncz) % ncy, ncy, p1)
@@ -162,12 +164,12 @@ def _build_own(
                     # written to the next free slot, kept when within the cut-off (no branch
                     # on the distance: it is taken about one time in six, unpredictably)
                     for j in range(max(cstart[c0], i + 1), cstart[c0 + nz_run]):
-                        oj = perm[j]
+                        oj = np.uint64(perm[j])
                         dx = min_image(P[oj, 0] - xi, l0, p0)
                         dy = min_image(P[oj, 1] - yi, l1, p1)
                         dz = min_image(P[oj, 2] - zi, l2, p2)
                         cut = ri + P[oj, 9] + skin
-                        nb_new[i, min(cnt, kmax - 1)] = j
+                        nb_new[i, np.uint64(min(cnt, kmax - 1))] = j
                         cnt += dx * dx + dy * dy + dz * dz < cut * cut
         for k in range(min(cnt, kmax)):
             j = nb_new[i, k]
@@ -212,13 +214,16 @@ def _build_tri(
     over = 0
     for i in prange(n_new):
         oi = perm[i]
-        x, y, z, r = P[oi, 0], P[oi, 1], P[oi, 2], P[oi, 9]
+        oiu = np.uint64(oi)
+        x, y, z, r = P[oiu, 0], P[oiu, 1], P[oiu, 2], P[oiu, 9]
         c = cell_of_new[i]
         cnt = 0
         for s in range(tstart[c], tstart[c + 1]):
             q = tcell[s]
             reach2 = (r + skin) ** 2
-            _, _, _, _, _, _, _, d2 = nearest_image_contact(x, y, z, tri_x, q, dom, per, reach2)
+            _, _, _, _, _, _, _, d2 = nearest_image_contact(
+                x, y, z, tri_x, np.uint64(q), dom, per, reach2
+            )
             if d2 < reach2:
                 if cnt < kmax:
                     tri_nb_new[i, cnt] = q
