@@ -8,8 +8,8 @@ blender section at t = 20.5 s) or, without one, a settled 6,000-sphere drum (the
 - the pair scatter's parts: finding the contacts, copying their inputs into the blocks, the
   contact law over the blocks, the springs written back and the forces added; and the whole
   scatter (``pair_scatter``: the parts plus what they cost together);
-- the force pass with and without the mesh contacts (``gather_pass``; the state's velocities
-  are restored after the timing: each call applies a half kick);
+- the mesh contacts (``mesh_pass``) and the force pass (``gather_pass``: the sums, the half
+  kick and the drift prediction), both with dt = 0 so that repeated calls leave the state;
 - one neighbour rebuild, and a plain run for the step time and the rebuild interval.
 
 Reports the numba compile time apart (first calls). Usage::
@@ -105,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     sim = _load(args.state)
     sim.run(100 * sim.dt, progress=False)
     from twin_core.dem.integrator import gather_pass, kick_drift
+    from twin_core.dem.mesh_contacts import flatten_triangles, mesh_pass
     from twin_core.dem.pairs import flatten_pairs, pair_scatter
 
     find, blocks = _part_kernels()
@@ -151,48 +152,45 @@ def main(argv: list[str] | None = None) -> int:
         ),  # fmt: skip
         args.repeat,
     )
-    v = s._P[:n, 3:9].copy()
-    for label, ntri in (("force pass", s._ntri[c]), ("force pass without meshes", None)):
-        nt = ntri if ntri is not None else np.zeros_like(s._ntri[c])
-        t[label] = _timed(
-            lambda nt=nt: gather_pass(
-                n,
-                s._P,
-                s._F,
-                s._IA,
-                nown,
-                s._pf,
-                s._nrev,
-                s._rev_o,
-                s._rev_k,
-                True,
-                s._acc,
-                s._bounds,
-                s._planes,
-                s._cyls,
-                s._whist,
-                nt,
-                s._tri_nb[c],
-                s._thist[c],
-                s._tri_tmp,
-                s._tri_x,
-                s._tri_mesh,
-                s._mesh_par,
-                s._pt,
-                s._dom,
-                s._per,
-                s._grav,
-                s.dt,
-                s.t,
-                True,
-                s._XB,
-                s._rm,
-                s._sinks,
-                s._disp2,
-            ),  # fmt: skip
-            args.repeat,
-        )
-        s._P[:n, 3:9] = v
+    # the mesh contacts and the force pass with dt = 0 (their half kick then leaves the state)
+    flatten_triangles(n, s._ntri[c], s._tri_nb[c], s._thist[c], s._mcnt, s._mint)
+    mesh_args = (n, s._P, s._IA, s._thist[c], s._tri_x, s._tri_mesh, s._mesh_par, s._pt,
+                 s._dom, s._per, 0.0, s.t, s._mint, s._mflt, s._mcnt, s._mwork)  # fmt: skip
+    t["mesh contacts (batched)"] = _timed(lambda: mesh_pass(*mesh_args), args.repeat)
+    t["force pass (sums, half kick, drift prediction)"] = _timed(
+        lambda: gather_pass(
+            n,
+            s._P,
+            s._F,
+            s._IA,
+            nown,
+            s._pf,
+            s._nrev,
+            s._rev_o,
+            s._rev_k,
+            True,
+            s._acc,
+            s._bounds,
+            s._planes,
+            s._cyls,
+            s._whist,
+            s._mint,
+            s._mflt,
+            s._mcnt,
+            s._pt,
+            s._dom,
+            s._per,
+            s._grav,
+            0.0,
+            s.t,
+            True,
+            s._XB,
+            s._rm,
+            s._sinks,
+            s._disp2,
+        ),  # fmt: skip
+        args.repeat,
+    )
     t["first half kick and drift"] = _timed(
         lambda: kick_drift(n, s._P, s._F, s._dom, s._per, 0.0), args.repeat
     )

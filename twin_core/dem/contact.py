@@ -41,6 +41,7 @@ __all__ = [
     "pair_coefficients",
     "rolling_torque",
     "wall_contact",
+    "wall_law",
 ]
 
 _TWO_THIRDS = 2.0 / 3.0
@@ -158,41 +159,60 @@ def hertz_energy(e_star, r_eff, delta):
     return 8.0 / 15.0 * e_star * math.sqrt(r_eff) * delta**2.5
 
 
-@njit(cache=True, fastmath=FMA)
-def wall_contact(
-    vx, vy, vz, wx, wy, wz, r, m, inv_i, mat_p,
-    nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, i, k, dt,
+@njit(cache=True, inline="always")
+def wall_law(
+    vx, vy, vz, wx, wy, wz, r, m, inv_i, nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz,
+    e_star, g_star, mu, mur, dmp, tn_ratio, hx, hy, hz, dt,
 ):  # fmt: skip
     """Hertz-Mindlin force and torque on a sphere (velocity v, angular velocity w, radius r,
-    mass m, inverse inertia, material ``mat_p``) touching an infinitely massive wall of material
-    ``mat_w`` (module docstring, with R* = R, m* = m).
+    mass m, inverse inertia) touching an infinitely massive wall (module docstring, with
+    R* = R, m* = m; coefficients of the sphere-wall material pair; spring (hx, hy, hz)).
 
-    ``n`` points from the sphere centre to the contact; the lever arm is ``r - delta``; the wall
-    moves at ``vw`` at the contact point and rotates at ``ww``. Returns (fx, fy, fz, tx, ty, tz);
-    ``hist[i, k]`` (3,) is the tangential spring, updated in place (indexed, not passed as a
-    view: a view costs a reference count per contact). Compiled once and called by the
-    plane, cylinder and mesh loops (not inlined: it is the largest piece of their code).
-    """
-    e_star, g_star, mu, mur, dmp, tn_ratio = pair_coefficients(pt, mat_p, mat_w)
+    ``n`` points from the sphere centre to the contact; the lever arm is ``c = r - delta``; the
+    wall moves at ``vw`` at the contact point and rotates at ``ww``: relative velocity at the
+    contact ``v + c (w x n) - vw``, torque ``c n x F_t + M_r`` with the rolling torque of
+    ``w - ww``. Straight-line code (selects only), so that a loop over contacts is compiled to
+    SIMD code (:func:`twin_core.dem.mesh_contacts.mesh_pass`). Returns (fx, fy, fz, tx, ty, tz,
+    new spring x, y, z)."""
     c = r - delta
     # contact point velocity of the sphere minus wall velocity
     rvx = vx + c * (wy * nz - wz * ny) - vwx
     rvy = vy + c * (wz * nx - wx * nz) - vwy
     rvz = vz + c * (wx * ny - wy * nx) - vwz
     fn, ftx, fty, ftz, hx, hy, hz = hertz_mindlin(
-        e_star, g_star, mu, dmp, tn_ratio, r, m, delta, nx, ny, nz, rvx, rvy, rvz,
-        hist[i, k, 0], hist[i, k, 1], hist[i, k, 2], dt,
-    )  # fmt: skip
-    hist[i, k, 0] = hx
-    hist[i, k, 1] = hy
-    hist[i, k, 2] = hz
+        e_star, g_star, mu, dmp, tn_ratio, r, m, delta, nx, ny, nz, rvx, rvy, rvz, hx, hy, hz, dt
+    )
     # torque of the tangential force: (c n) x ft
     tx = c * (ny * ftz - nz * fty)
     ty = c * (nz * ftx - nx * ftz)
     tz = c * (nx * fty - ny * ftx)
     # rolling friction (constant directional torque)
     trx, try_, trz = rolling_torque(mur, fn, r, wx - wwx, wy - wwy, wz - wwz, dt * inv_i)
-    return -fn * nx + ftx, -fn * ny + fty, -fn * nz + ftz, tx + trx, ty + try_, tz + trz
+    return (
+        -fn * nx + ftx, -fn * ny + fty, -fn * nz + ftz, tx + trx, ty + try_, tz + trz,
+        hx, hy, hz,
+    )  # fmt: skip
+
+
+@njit(cache=True, fastmath=FMA)
+def wall_contact(
+    vx, vy, vz, wx, wy, wz, r, m, inv_i, mat_p,
+    nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz, mat_w, pt, hist, i, k, dt,
+):  # fmt: skip
+    """:func:`wall_law` of a sphere of material ``mat_p`` touching a wall of material ``mat_w``
+    (coefficients from the tables ``pt``), its spring ``hist[i, k]`` (3,) updated in place
+    (indexed, not passed as a view: a view costs a reference count per contact). Returns
+    (fx, fy, fz, tx, ty, tz). Compiled once and called by the plane and cylinder loops (not
+    inlined: it is the largest piece of their code)."""
+    e_star, g_star, mu, mur, dmp, tn_ratio = pair_coefficients(pt, mat_p, mat_w)
+    fx, fy, fz, tx, ty, tz, hx, hy, hz = wall_law(
+        vx, vy, vz, wx, wy, wz, r, m, inv_i, nx, ny, nz, delta, vwx, vwy, vwz, wwx, wwy, wwz,
+        e_star, g_star, mu, mur, dmp, tn_ratio, hist[i, k, 0], hist[i, k, 1], hist[i, k, 2], dt,
+    )  # fmt: skip
+    hist[i, k, 0] = hx
+    hist[i, k, 1] = hy
+    hist[i, k, 2] = hz
+    return fx, fy, fz, tx, ty, tz
 
 
 @njit(cache=True, inline="always")

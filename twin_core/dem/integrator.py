@@ -22,9 +22,10 @@ J. Chem. Phys. 76, 637 (velocity form); Allen & Tildesley, Computer Simulation o
 from __future__ import annotations
 
 import numpy as np
-from numba import get_thread_id, njit, prange
+from numba import njit, prange
 
-from .meshes import add_mesh_contacts, update_mesh
+from .mesh_contacts import add_mesh_sums, flatten_triangles, mesh_pass
+from .meshes import update_mesh
 from .pairs import chunk_sums, flatten_pairs, gather_pair_slots, pair_pass, pair_scatter
 from .partition import rebuild, rebuild_due
 from .space import FMA, min_image
@@ -35,7 +36,9 @@ __all__ = ["advance", "compute_forces", "gather_pass", "kick_drift", "predict"]
 
 @njit(cache=True, parallel=True, fastmath=FMA)
 def kick_drift(n, P, F, dom, per, dt):
-    """Velocity Verlet first half: ``v += F/m dt/2; w += T/I dt/2; x += v dt``; wrap periodic."""
+    """Velocity Verlet first half: ``v += F/m dt/2; w += T/I dt/2; x += v dt``; wrap periodic.
+    ``F`` is zeroed once used: the pair scatter's first chunk sums into it (zeroed here, where
+    its rows are in cache, rather than by a pass of its own)."""
     hdt = 0.5 * dt
     for i in prange(n):
         invm = P[i, 11]
@@ -127,12 +130,12 @@ def _store_and_kick(i, P, F, grav, dt, fx, fy, fz, tx, ty, tz):
 @njit(cache=True, parallel=True, fastmath=FMA)
 def gather_pass(
     n, P, F, IA, nown, pf, nrev, rev_o, rev_k, use_acc, acc, bounds,
-    planes, cyls, whist,
-    ntri, tri_nb, thist, tri_tmp, tri_x, tri_mesh, mesh_par,
+    planes, cyls, whist, mint, mflt, mcnt,
     pt, dom, per, grav, dt, t, predict_next, XB, rm, sinks, disp2,
 ):  # fmt: skip
     """Pass 2: total force/torque on each particle (pairs, planes, cylinders, meshes, gravity,
-    summed in that order); half kick.
+    summed in that order); half kick. The mesh contacts' forces come from
+    :func:`twin_core.dem.mesh_contacts.mesh_pass` (``mint``, ``mflt``, ``mcnt``).
 
     Pair sums: with ``use_acc`` they are added from the chunk buffers ``acc`` (filled by
     :func:`twin_core.dem.pairs.pair_scatter`, chunk order); otherwise they are gathered from
@@ -153,11 +156,7 @@ def gather_pass(
         fx, fy, fz, tx, ty, tz = add_cylinder_contacts(
             i, P, IA, cyls, npl, whist, pt, dt, t, fx, fy, fz, tx, ty, tz
         )
-        fx, fy, fz, tx, ty, tz = add_mesh_contacts(
-            i, P, IA, ntri, tri_nb, thist, tri_tmp, get_thread_id(), tri_x, tri_mesh, mesh_par, pt,
-            dom, per, dt,
-            t, fx, fy, fz, tx, ty, tz,
-        )  # fmt: skip
+        fx, fy, fz, tx, ty, tz = add_mesh_sums(i, mint, mflt, mcnt, fx, fy, fz, tx, ty, tz)
         _store_and_kick(i, P, F, grav, dt, fx, fy, fz, tx, ty, tz)
         if predict_next:
             _predict_one(i, P, F, XB, rm, dom, per, sinks, dt, disp2)
@@ -167,11 +166,12 @@ def gather_pass(
 def _forces_and_kick(
     n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live, clist,
     work, pf, acc, bounds, c,
-    tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
+    thist_b, tri_x, tri_mesh, mesh_par, mint, mflt, mcnt, mwork,
     planes, cyls, pt, dom, per, grav, dt, t, serial, predict_next, XB, rm, sinks, disp2,
 ):  # fmt: skip
     """Forces at time t on the live lists ``c`` and the second half kick: the pair forces by the
-    chunked scatter (``serial``) or pass 1, then pass 2 (:func:`gather_pass`)."""
+    chunked scatter (``serial``) or pass 1, the mesh contacts
+    (:func:`twin_core.dem.mesh_contacts.mesh_pass`), then pass 2 (:func:`gather_pass`)."""
     if serial:
         pair_scatter(
             n, P, IA, nbf, pstart, nown_b[c], hist_b[c], live, clist, work, F, acc, bounds, pt,
@@ -182,10 +182,14 @@ def _forces_and_kick(
             n, P, IA, nbf, pstart, nown_b[c], hist_b[c], live, clist, work, pf, bounds, pt, dom,
             per, dt,
         )  # fmt: skip
+    if tri_x.shape[0] > 0:
+        mesh_pass(
+            n, P, IA, thist_b[c], tri_x, tri_mesh, mesh_par, pt, dom, per, dt, t, mint, mflt,
+            mcnt, mwork,
+        )  # fmt: skip
     gather_pass(
         n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc, bounds,
-        planes, cyls, whist,
-        ntri_b[c], tri_nb_b[c], thist_b[c], tri_tmp, tri_x, tri_mesh, mesh_par,
+        planes, cyls, whist, mint, mflt, mcnt,
         pt, dom, per, grav, dt, t, predict_next, XB, rm, sinks, disp2,
     )  # fmt: skip
 
@@ -194,7 +198,8 @@ def _forces_and_kick(
 def advance(
     nsteps, step0, dt, n, P, F, IA, XB, rm, disp2, whist,
     nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live, clist, work, pf, acc, bounds,
-    cur, tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x0, tri_x, tri_xb, tri_mesh, mesh_par, any_moving,
+    cur, tri_nb_b, thist_b, ntri_b, mint, mflt, mcnt, mwork, tri_x0, tri_x, tri_xb, tri_mesh,
+    mesh_par, any_moving,
     planes, cyls, sinks, pt, dom, per, grav, skin, rmax, removed, counters, serial,
 ):  # fmt: skip
     """Advance up to ``nsteps`` velocity-Verlet steps.
@@ -209,6 +214,7 @@ def advance(
     meshes_move = any_moving and tri_x.shape[0] > 0
     c = cur[0]
     flatten_pairs(n, nb_b[c], nown_b[c], hist_b[c], pstart, nbf, live)
+    flatten_triangles(n, ntri_b[c], tri_nb_b[c], thist_b[c], mcnt, mint)
     predict(n, P, F, XB, rm, dom, per, sinks, dt, disp2)
     for s in range(nsteps):
         t_new = (step0 + s + 1) * dt
@@ -228,6 +234,7 @@ def advance(
             n = n_new
             c = cur[0]
             flatten_pairs(n, nb_b[c], nown_b[c], hist_b[c], pstart, nbf, live)
+            flatten_triangles(n, ntri_b[c], tri_nb_b[c], thist_b[c], mcnt, mint)
             counters[0] = 0
             counters[1] += 1
             if meshes_move:
@@ -236,7 +243,7 @@ def advance(
         _forces_and_kick(
             n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live,
             clist, work, pf, acc, bounds, cur[0],
-            tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
+            thist_b, tri_x, tri_mesh, mesh_par, mint, mflt, mcnt, mwork,
             planes, cyls, pt, dom, per, grav, dt, t_new, serial, True, XB, rm, sinks, disp2,
         )  # fmt: skip
     return 0, nsteps, n
@@ -246,7 +253,7 @@ def advance(
 def compute_forces(
     n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live, clist,
     work, pf, acc, bounds, cur,
-    tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
+    tri_nb_b, thist_b, ntri_b, mint, mflt, mcnt, mwork, tri_x, tri_mesh, mesh_par,
     planes, cyls, pt, dom, per, grav, dt, t, serial,
 ):  # fmt: skip
     """Forces at the current state without moving (used once before the first step).
@@ -259,10 +266,11 @@ def compute_forces(
     wh = whist.copy()
     v = P[:n, 3:9].copy()
     flatten_pairs(n, nb_b[c], nown_b[c], hist_b[c], pstart, nbf, live)
+    flatten_triangles(n, ntri_b[c], tri_nb_b[c], thist_b[c], mcnt, mint)
     _forces_and_kick(
         n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live, clist,
         work, pf, acc, bounds, c,
-        tri_nb_b, thist_b, ntri_b, tri_tmp, tri_x, tri_mesh, mesh_par,
+        thist_b, tri_x, tri_mesh, mesh_par, mint, mflt, mcnt, mwork,
         planes, cyls, pt, dom, per, grav, dt, t, serial,
         False, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 6)), np.zeros(0),
     )  # fmt: skip

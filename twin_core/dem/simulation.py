@@ -24,6 +24,7 @@ from .energy import elastic_energy
 from .insertion import BoxRegion, CylinderRegion, ParticleFactory, rsa_place, sample_radii
 from .integrator import advance, compute_forces
 from .materials import Material, MaterialTable, hertz_contact_time, rayleigh_time
+from .mesh_contacts import MBLOCK_WORDS, MFLT_ROWS, MINT_ROWS
 from .meshes import update_mesh
 from .motion import RotationMotion, TranslationMotion, motion_from_dict
 from .pairs import BLOCK_WORDS
@@ -205,8 +206,12 @@ class Simulation:
         self._tri_nb = np.zeros((2, cap, ktri), np.int32)
         self._thist = np.zeros((2, cap, ktri, 3))
         self._ntri = np.zeros((2, cap), np.int32)
-        # mesh-contact scratch, one block per thread (meshes.add_mesh_contacts)
-        self._tri_tmp = np.zeros((numba.config.NUMBA_NUM_THREADS, ktri, 8))
+        # work arrays of the batched mesh contacts (twin_core.dem.mesh_contacts), derived each
+        # step; one block buffer per thread
+        self._mcnt = np.zeros((3, cap + 1), np.int64)
+        self._mint = np.zeros((MINT_ROWS, cap * ktri), np.int32)
+        self._mflt = np.zeros((MFLT_ROWS, cap * ktri))
+        self._mwork = np.zeros((numba.config.NUMBA_NUM_THREADS, MBLOCK_WORDS))
 
     def _resize(
         self, cap: int | None = None, kown: int | None = None, krev: int | None = None,
@@ -858,8 +863,8 @@ class Simulation:
             self._rev_o, self._rev_k, self._nrev, self._pstart, self._nbf, self._live, self._clist,
             self._work, self._pf,
             self._acc, self._bounds, self._cur,
-            self._tri_nb, self._thist, self._ntri, self._tri_tmp, self._tri_x, self._tri_mesh,
-            self._mesh_par, self._planes, self._cyls, self._pt, self._dom, self._per,
+            self._tri_nb, self._thist, self._ntri, self._mint, self._mflt, self._mcnt,
+            self._mwork, self._tri_x, self._tri_mesh, self._mesh_par, self._planes, self._cyls, self._pt, self._dom, self._per,
             self._grav, self.dt, self.t, self._serial(),
         )  # fmt: skip
         self._forces_stale = False
@@ -977,7 +982,8 @@ class Simulation:
             self._nb, self._hist, self._nown, self._rev_o, self._rev_k, self._nrev,
             self._pstart, self._nbf, self._live, self._clist, self._work,
             self._pf, self._acc, self._bounds, self._cur, self._tri_nb, self._thist, self._ntri,
-            self._tri_tmp, self._tri_x0, self._tri_x, self._tri_xb, self._tri_mesh,
+            self._mint, self._mflt, self._mcnt, self._mwork, self._tri_x0, self._tri_x,
+            self._tri_xb, self._tri_mesh,
             self._mesh_par,
             bool(np.any(self._mesh_par[:, 0] != 0)) if len(self._mesh_par) else False,
             self._planes, self._cyls, self._sinks, self._pt, self._dom, self._per,

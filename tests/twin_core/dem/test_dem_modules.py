@@ -20,7 +20,7 @@ LAYERS = [
     {"contact", "vtk"},
     {"meshes"},
     {"partition"},
-    {"pairs", "walls"},
+    {"pairs", "walls", "mesh_contacts"},
     {"integrator", "energy", "insertion"},
     {"simulation"},
     {"sensors"},
