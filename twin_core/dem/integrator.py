@@ -36,9 +36,7 @@ __all__ = ["advance", "compute_forces", "gather_pass", "kick_drift", "predict"]
 
 @njit(cache=True, parallel=True, fastmath=FMA)
 def kick_drift(n, P, F, dom, per, dt):
-    """Velocity Verlet first half: ``v += F/m dt/2; w += T/I dt/2; x += v dt``; wrap periodic.
-    ``F`` is zeroed once used: the pair scatter's first chunk sums into it (zeroed here, where
-    its rows are in cache, rather than by a pass of its own)."""
+    """Velocity Verlet first half: ``v += F/m dt/2; w += T/I dt/2; x += v dt``; wrap periodic."""
     hdt = 0.5 * dt
     for i in prange(n):
         invm = P[i, 11]

@@ -21,7 +21,18 @@ from types import ModuleType
 import numpy as np
 from numba.core.dispatcher import Dispatcher
 
-from . import contact, energy, insertion, integrator, meshes, pairs, partition, sensors, walls
+from . import (
+    contact,
+    energy,
+    insertion,
+    integrator,
+    mesh_contacts,
+    meshes,
+    pairs,
+    partition,
+    sensors,
+    walls,
+)
 from .insertion import BoxRegion, ParticleFactory
 from .materials import Material
 from .motion import RotationMotion
@@ -30,7 +41,8 @@ from .simulation import Simulation
 __all__ = ["compile_kernels", "kernel_cache_counts"]
 
 _KERNEL_MODULES: tuple[ModuleType, ...] = (
-    contact, meshes, partition, pairs, walls, integrator, energy, insertion, sensors,
+    contact, meshes, partition, pairs, walls, mesh_contacts, integrator, energy, insertion,
+    sensors,
 )  # fmt: skip
 
 
