@@ -29,12 +29,13 @@ own contact only, so the chunking changes no bit):
 Work arrays (sized by the candidate slots, ``cap * ktri``; the candidates packed by
 :func:`flatten_triangles` after each rebuild and before each run of steps, the rest each step):
 ``mcnt`` int64 (3, cap + 1): row 0 the first candidate of each particle, rows 1 and 2 its first
-accepted position and the number accepted; ``mint`` int32 (7, cap * ktri): rows 0-1 the
+accepted position and the number accepted; ``mint`` int32 (8, cap * ktri): rows 0-1 the
 candidates (particle, triangle), row 2 whether a candidate's spring may be non-zero, row 3 the
 contacts and row 4 the accepted contacts (candidate indices), rows 5-6 the spring copies
-(shadowed candidate, shadowing candidate); ``mflt`` float64 (9, cap * ktri): per candidate
-the contact point (3), the unit normal from the centre to it (3), the distance, the feature
-and the contact code, then (rows 0-5) the force and torque of an accepted contact;
+(shadowed candidate, shadowing candidate), row 7 the contact code; ``mflt`` float64
+(cap * ktri, 8), a row per candidate (one cache line for the force pass to read): the contact
+point (3), the unit normal from the centre to it (3), the distance and the feature, then
+(columns 0-5) the force and torque of an accepted contact;
 ``mwork`` (chunks, :data:`MBLOCK_WORDS`), one block buffer per chunk.
 
 References: Ericson, Real-Time Collision Detection (2005), Sec. 5.1.5; Su, Gu & Xu (2011),
@@ -63,7 +64,7 @@ __all__ = [
     "MBLOCK",
     "MBLOCK_WORDS",
     "MINT_ROWS",
-    "MFLT_ROWS",
+    "MFLT_COLS",
     "add_mesh_sums",
     "closest_block",
     "flatten_triangles",
@@ -75,15 +76,15 @@ __all__ = [
 MBLOCK = 128
 _ROW = MBLOCK + 8  # row stride of a block buffer (rows 1 KiB apart would share L1 sets)
 _GIN = 14  # geometry inputs: centre (3), radius, triangle (9), mesh active
-_GOUT = 9  # geometry results (the rows of ``mflt``)
+_GOUT = 9  # geometry results (the columns of ``mflt``, then the contact code)
 _LIN = 28  # law inputs (see _load_law)
 _LOUT = 9  # law results: force (3), torque (3), spring (3)
 #: words of one chunk's block buffer (``mwork[c]``)
 MBLOCK_WORDS = max(_GIN + _GOUT, _LIN + _LOUT) * _ROW
 #: rows of ``mint`` and ``mflt``
-MINT_ROWS = 7
-MFLT_ROWS = 9
-_FAR = 2.0  # contact code of a candidate with a second periodic image within reach
+MINT_ROWS = 8
+MFLT_COLS = 8
+_FAR = 2  # contact code of a candidate with a second periodic image within reach
 
 
 @njit(cache=True)
@@ -129,10 +130,11 @@ def _load_candidates(p0, nq, P, tri_x, tri_mesh, motion, mint, w):
 @njit(cache=True, fastmath=FMA, error_model="numpy")
 def closest_block(nq, w, dom, per):
     """Geometry of the ``nq`` candidates of a block buffer (rows of :func:`_load_candidates`),
-    written to its result rows (those of ``mflt``): the image q of the centre nearest to the triangle along
+    written to its result rows: the image q of the centre nearest to the triangle along
     periodic axes (:func:`twin_core.dem.meshes.axis_images`), the closest point c on the
     triangle (:func:`twin_core.dem.meshes.closest_point_triangle`; 3), the unit vector from q
-    to c (3), ``|c - q|``, the feature, and the contact code: 1 in contact (distance below the
+    to c (3), ``|c - q|``, the feature, and the contact code (:func:`_store_geometry` puts it in
+    ``mint[7]``): 1 in contact (distance below the
     radius and not zero, mesh active), 0 not, :data:`_FAR` where a second image lies within
     reach of the triangle's box (then the full image search decides). One loop without
     branches: compiled to SIMD code, the same bits in any column."""
@@ -161,16 +163,19 @@ def closest_block(nq, w, dom, per):
         w[o + 5 * _ROW + q] = dz * inv
         w[o + 6 * _ROW + q] = dist
         w[o + 7 * _ROW + q] = feat
-        w[o + 8 * _ROW + q] = _FAR if far else (1.0 if touch else 0.0)
+        w[o + 8 * _ROW + q] = 2.0 if far else (1.0 if touch else 0.0)
 
 
 @njit(cache=True, inline="always")
-def _store_geometry(p0, nq, w, mflt):
-    """The block's geometry results to ``mflt[:, p0:p0+nq]``."""
+def _store_geometry(p0, nq, w, mint, mflt):
+    """The block's geometry results to the candidates' rows ``mflt[p0:p0+nq]`` and their
+    contact codes to ``mint[7, p0:p0+nq]``."""
     o = _GIN * _ROW
-    for c in range(_GOUT):
-        for q in range(nq):
-            mflt[c, p0 + q] = w[o + c * _ROW + q]
+    for q in range(nq):
+        p = p0 + q
+        for c in range(8):
+            mflt[p, c] = w[o + c * _ROW + q]
+        mint[7, p] = np.int32(w[o + 8 * _ROW + q])
 
 
 @njit(cache=True, inline="always")
@@ -187,14 +192,14 @@ def _far_contact(p, P, thist, tri_x, tri_mesh, motion, dom, per, mint, mflt):
     dist = math.sqrt((kx - qx) ** 2 + (ky - qy) ** 2 + (kz - qz) ** 2)
     touch = d2 < math.inf and dist < r and dist > 0.0 and motion[tri_mesh[tq], 0] != 0.0
     if touch:
-        mflt[0, p] = kx
-        mflt[1, p] = ky
-        mflt[2, p] = kz
-        mflt[3, p] = (kx - qx) / dist
-        mflt[4, p] = (ky - qy) / dist
-        mflt[5, p] = (kz - qz) / dist
-        mflt[6, p] = dist
-        mflt[7, p] = f
+        mflt[p, 0] = kx
+        mflt[p, 1] = ky
+        mflt[p, 2] = kz
+        mflt[p, 3] = (kx - qx) / dist
+        mflt[p, 4] = (ky - qy) / dist
+        mflt[p, 5] = (kz - qz) / dist
+        mflt[p, 6] = dist
+        mflt[p, 7] = f
     return touch
 
 
@@ -207,8 +212,8 @@ def _keep_contacts(p0, nq, m, P, thist, tri_x, tri_mesh, motion, dom, per, mint,
     is kept when it is a contact."""
     for q in range(nq):
         p = p0 + q
-        code = mflt[8, p]
-        touch = code == 1.0
+        code = mint[7, p]
+        touch = code == 1
         if code == _FAR:
             touch = _far_contact(p, P, thist, tri_x, tri_mesh, motion, dom, per, mint, mflt)
         mint[3, m] = p
@@ -227,15 +232,15 @@ def _shadowing_contact(p, g0, g1, tol, tri_x, mint, mflt):
     ``mint[3, g0:g1]`` that shadows edge/vertex contact (candidate) p: the same contact point
     within ``tol``, or p's contact point on a triangle with an accepted face contact. Returns
     its candidate index, or -1."""
-    kx, ky, kz = mflt[0, p], mflt[1, p], mflt[2, p]
+    kx, ky, kz = mflt[p, 0], mflt[p, 1], mflt[p, 2]
     for g in range(g0, g1):
         p2 = mint[3, g]
-        f2 = mflt[7, p2]
+        f2 = mflt[p2, 7]
         if f2 < 10.0:  # not (yet) accepted
             continue
-        dx = kx - mflt[0, p2]
-        dy = ky - mflt[1, p2]
-        dz = kz - mflt[2, p2]
+        dx = kx - mflt[p2, 0]
+        dy = ky - mflt[p2, 1]
+        dz = kz - mflt[p2, 2]
         if dx * dx + dy * dy + dz * dz < tol * tol:
             return p2
         if f2 == 10.0 and dist_point_tri(kx, ky, kz, tri_x, np.uint64(mint[1, p2])) < tol:
@@ -268,18 +273,18 @@ def _accept_contacts(off, m, P, tri_x, mint, mflt, mcnt):
             for feat_pass in range(3):  # faces, then edges, then vertices
                 for g in range(g0, e):
                     p = mint[3, g]
-                    if mflt[7, p] != feat_pass:
+                    if mflt[p, 7] != feat_pass:
                         continue
                     shadow = -1
                     if feat_pass > 0:
                         shadow = _shadowing_contact(p, g0, e, tol, tri_x, mint, mflt)
                     if shadow >= 0:
-                        mflt[7, p] = -1.0
+                        mflt[p, 7] = -1.0
                         mint[5, s] = p
                         mint[6, s] = shadow
                         s += 1
                         continue
-                    mflt[7, p] = 10.0 + feat_pass
+                    mflt[p, 7] = 10.0 + feat_pass
                     mint[4, a] = p
                     a += 1
         mcnt[2, i] = a - mcnt[1, i]
@@ -319,18 +324,18 @@ def _load_law(a0, nq, P, IA, thist, tri_mesh, mesh_par, motion, pt, mint, mflt, 
         w[6 * _ROW + q] = P[i, 9]
         w[7 * _ROW + q] = P[i, 10]
         w[8 * _ROW + q] = P[i, 12]
-        w[9 * _ROW + q] = mflt[3, e]
-        w[10 * _ROW + q] = mflt[4, e]
-        w[11 * _ROW + q] = mflt[5, e]
-        w[12 * _ROW + q] = P[i, 9] - mflt[6, e]
+        w[9 * _ROW + q] = mflt[e, 3]
+        w[10 * _ROW + q] = mflt[e, 4]
+        w[11 * _ROW + q] = mflt[e, 5]
+        w[12 * _ROW + q] = P[i, 9] - mflt[e, 6]
         om = motion[mesh, 1]
         vwx, vwy, vwz = motion[mesh, 2], motion[mesh, 3], motion[mesh, 4]
         wwx = wwy = wwz = 0.0
         if om != 0.0:
             ux, uy, uz = mesh_par[mesh, 4], mesh_par[mesh, 5], mesh_par[mesh, 6]
-            rx = mflt[0, e] - mesh_par[mesh, 1]
-            ry = mflt[1, e] - mesh_par[mesh, 2]
-            rz = mflt[2, e] - mesh_par[mesh, 3]
+            rx = mflt[e, 0] - mesh_par[mesh, 1]
+            ry = mflt[e, 1] - mesh_par[mesh, 2]
+            rz = mflt[e, 2] - mesh_par[mesh, 3]
             vwx = om * (uy * rz - uz * ry)
             vwy = om * (uz * rx - ux * rz)
             vwz = om * (ux * ry - uy * rx)
@@ -384,15 +389,15 @@ def wall_block(nq, w, dt):
 
 @njit(cache=True, inline="always")
 def _store_law(a0, nq, thist, mint, mflt, mcnt, w):
-    """The block's new springs back to ``thist``, its forces and torques to rows 0-5 of
-    ``mflt`` at each contact's index (its geometry is no longer needed)."""
+    """The block's new springs back to ``thist``, its forces and torques to columns 0-5 of
+    each contact's row of ``mflt`` (its geometry is no longer needed)."""
     o = _LIN * _ROW
     for q in range(nq):
         e = np.uint64(mint[4, a0 + q])
         i = np.uint64(mint[0, e])
         k = np.uint64(e - mcnt[0, i])
         for c in range(6):
-            mflt[c, e] = w[o + c * _ROW + q]
+            mflt[e, c] = w[o + c * _ROW + q]
         thist[i, k, 0] = w[o + 6 * _ROW + q]
         thist[i, k, 1] = w[o + 7 * _ROW + q]
         thist[i, k, 2] = w[o + 8 * _ROW + q]
@@ -420,7 +425,7 @@ def mesh_pass(n, P, IA, thist, tri_x, tri_mesh, mesh_par, pt, dom, per, dt, t, m
             nq = min(MBLOCK, end - p0)
             _load_candidates(p0, nq, P, tri_x, tri_mesh, motion, mint, w)
             closest_block(nq, w, dom, per)
-            _store_geometry(p0, nq, w, mflt)
+            _store_geometry(p0, nq, w, mint, mflt)
             m = _keep_contacts(
                 p0, nq, m, P, thist, tri_x, tri_mesh, motion, dom, per, mint, mflt, mcnt
             )
@@ -447,10 +452,10 @@ def add_mesh_sums(i, mint, mflt, mcnt, fx, fy, fz, tx, ty, tz):
     a0 = mcnt[1, i]
     for a in range(a0, a0 + mcnt[2, i]):
         e = np.uint64(mint[4, a])
-        fx += mflt[0, e]
-        fy += mflt[1, e]
-        fz += mflt[2, e]
-        tx += mflt[3, e]
-        ty += mflt[4, e]
-        tz += mflt[5, e]
+        fx += mflt[e, 0]
+        fy += mflt[e, 1]
+        fz += mflt[e, 2]
+        tx += mflt[e, 3]
+        ty += mflt[e, 4]
+        tz += mflt[e, 5]
     return fx, fy, fz, tx, ty, tz

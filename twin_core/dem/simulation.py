@@ -24,7 +24,7 @@ from .energy import elastic_energy
 from .insertion import BoxRegion, CylinderRegion, ParticleFactory, rsa_place, sample_radii
 from .integrator import advance, compute_forces
 from .materials import Material, MaterialTable, hertz_contact_time, rayleigh_time
-from .mesh_contacts import MBLOCK_WORDS, MFLT_ROWS, MINT_ROWS
+from .mesh_contacts import MBLOCK_WORDS, MFLT_COLS, MINT_ROWS
 from .meshes import update_mesh
 from .motion import RotationMotion, TranslationMotion, motion_from_dict
 from .pairs import BLOCK_WORDS
@@ -210,7 +210,7 @@ class Simulation:
         # step; one block buffer per thread
         self._mcnt = np.zeros((3, cap + 1), np.int64)
         self._mint = np.zeros((MINT_ROWS, cap * ktri), np.int32)
-        self._mflt = np.zeros((MFLT_ROWS, cap * ktri))
+        self._mflt = np.zeros((cap * ktri, MFLT_COLS))
         self._mwork = np.zeros((numba.config.NUMBA_NUM_THREADS, MBLOCK_WORDS))
 
     def _resize(

@@ -16,7 +16,7 @@ from numba import njit
 
 from twin_core.dem.mesh_contacts import (
     MBLOCK_WORDS,
-    MFLT_ROWS,
+    MFLT_COLS,
     MINT_ROWS,
     add_mesh_sums,
     flatten_triangles,
@@ -144,7 +144,7 @@ def _batched_mesh_forces(P, tri_x, tri_of, dom, per, pt, chunks):
     mesh_par = np.zeros((1, 16))
     mesh_par[0, 13], mesh_par[0, 14], mesh_par[0, 15] = -np.inf, np.inf, 1.0
     mint = np.zeros((MINT_ROWS, n), np.int32)
-    mflt = np.zeros((MFLT_ROWS, n))
+    mflt = np.zeros((n, MFLT_COLS))
     mcnt = np.zeros((3, n + 1), np.int64)
     flatten_triangles(n, ntri, tri_nb, thist, mcnt, mint)
     mesh_pass(
