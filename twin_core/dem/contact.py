@@ -40,6 +40,8 @@ __all__ = [
     "hertz_mindlin",
     "pair_coefficients",
     "rolling_torque",
+    "rotating_wall_velocity",
+    "spring_set",
     "wall_contact",
     "wall_law",
 ]
@@ -48,10 +50,16 @@ _TWO_THIRDS = 2.0 / 3.0
 
 
 @njit(cache=True, inline="always")
+def spring_set(h, i, k):
+    """Whether the tangential spring ``h[i, k]`` (3,) is not zero (without branches)."""
+    return (h[i, k, 0] != 0.0) | (h[i, k, 1] != 0.0) | (h[i, k, 2] != 0.0)
+
+
+@njit(cache=True, inline="always")
 def clear_history(h, i, k):
     """Zero the tangential spring ``h[i, k]`` (3,) of a contact that has ended, if it is not zero
     already (reads are cheaper than writes: most slots are clear; avoids dirtying cache lines)."""
-    if h[i, k, 0] != 0.0 or h[i, k, 1] != 0.0 or h[i, k, 2] != 0.0:
+    if spring_set(h, i, k):
         h[i, k, 0] = 0.0
         h[i, k, 1] = 0.0
         h[i, k, 2] = 0.0
@@ -157,6 +165,13 @@ def hertz_energy(e_star, r_eff, delta):
     """Elastic energy ``(8/15) E* sqrt(R*) delta^(5/2)`` of a Hertz contact of overlap delta
     (the potential of the normal spring ``F_n = (4/3) E* sqrt(R*) delta^(3/2)``; Johnson 1985)."""
     return 8.0 / 15.0 * e_star * math.sqrt(r_eff) * delta**2.5
+
+
+@njit(cache=True, inline="always")
+def rotating_wall_velocity(om, ux, uy, uz, rx, ry, rz):
+    """Velocity ``omega u x r`` of the point at r from the axis point of a wall turning at omega
+    about the unit axis u (rigid rotation)."""
+    return om * (uy * rz - uz * ry), om * (uz * rx - ux * rz), om * (ux * ry - uy * rx)
 
 
 @njit(cache=True, inline="always")

@@ -50,7 +50,13 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .contact import clear_history, pair_coefficients, wall_law
+from .contact import (
+    clear_history,
+    pair_coefficients,
+    rotating_wall_velocity,
+    spring_set,
+    wall_law,
+)
 from .meshes import (
     axis_images,
     closest_point_triangle,
@@ -99,7 +105,7 @@ def flatten_triangles(n, ntri, tri_nb, thist, mcnt, mint):
         for k in range(ntri[i]):
             mint[0, p] = i
             mint[1, p] = tri_nb[i, k]
-            mint[2, p] = (thist[i, k, 0] != 0.0) | (thist[i, k, 1] != 0.0) | (thist[i, k, 2] != 0.0)
+            mint[2, p] = spring_set(thist, i, k)
             p += 1
     mcnt[0, n] = p
 
@@ -134,10 +140,10 @@ def closest_block(nq, w, dom, per):
     periodic axes (:func:`twin_core.dem.meshes.axis_images`), the closest point c on the
     triangle (:func:`twin_core.dem.meshes.closest_point_triangle`; 3), the unit vector from q
     to c (3), ``|c - q|``, the feature, and the contact code (:func:`_store_geometry` puts it in
-    ``mint[7]``): 1 in contact (distance below the
-    radius and not zero, mesh active), 0 not, :data:`_FAR` where a second image lies within
-    reach of the triangle's box (then the full image search decides). One loop without
-    branches: compiled to SIMD code, the same bits in any column."""
+    ``mint[7]``): 1 in contact (distance below the radius and not zero, mesh active), 0 not,
+    :data:`_FAR` where a second image lies within reach of the triangle's box (then the full
+    image search decides). One loop without branches: compiled to SIMD code, the same bits in
+    any column."""
     o = _GIN * _ROW
     for q in range(nq):
         px, py, pz, r = w[q], w[_ROW + q], w[2 * _ROW + q], w[3 * _ROW + q]
@@ -179,7 +185,7 @@ def _store_geometry(p0, nq, w, mint, mflt):
 
 
 @njit(cache=True, inline="always")
-def _far_contact(p, P, thist, tri_x, tri_mesh, motion, dom, per, mint, mflt):
+def _far_contact(p, P, tri_x, tri_mesh, motion, dom, per, mint, mflt):
     """Redo the geometry of candidate p (a second periodic image within reach) by the full image
     search (:func:`twin_core.dem.meshes.nearest_image_contact`); returns whether it is a
     contact."""
@@ -215,7 +221,7 @@ def _keep_contacts(p0, nq, m, P, thist, tri_x, tri_mesh, motion, dom, per, mint,
         code = mint[7, p]
         touch = code == 1
         if code == _FAR:
-            touch = _far_contact(p, P, thist, tri_x, tri_mesh, motion, dom, per, mint, mflt)
+            touch = _far_contact(p, P, tri_x, tri_mesh, motion, dom, per, mint, mflt)
         mint[3, m] = p
         m += np.int64(touch)
         stale = mint[2, p] > np.int32(touch)
@@ -333,12 +339,10 @@ def _load_law(a0, nq, P, IA, thist, tri_mesh, mesh_par, motion, pt, mint, mflt, 
         wwx = wwy = wwz = 0.0
         if om != 0.0:
             ux, uy, uz = mesh_par[mesh, 4], mesh_par[mesh, 5], mesh_par[mesh, 6]
-            rx = mflt[e, 0] - mesh_par[mesh, 1]
-            ry = mflt[e, 1] - mesh_par[mesh, 2]
-            rz = mflt[e, 2] - mesh_par[mesh, 3]
-            vwx = om * (uy * rz - uz * ry)
-            vwy = om * (uz * rx - ux * rz)
-            vwz = om * (ux * ry - uy * rx)
+            vwx, vwy, vwz = rotating_wall_velocity(
+                om, ux, uy, uz, mflt[e, 0] - mesh_par[mesh, 1], mflt[e, 1] - mesh_par[mesh, 2],
+                mflt[e, 2] - mesh_par[mesh, 3],
+            )  # fmt: skip
             wwx, wwy, wwz = om * ux, om * uy, om * uz
         w[13 * _ROW + q] = vwx
         w[14 * _ROW + q] = vwy

@@ -55,6 +55,7 @@ from .contact import (
     hertz_mindlin,
     pair_coefficients,
     rolling_torque,
+    spring_set,
 )
 from .space import FMA, min_image
 
@@ -95,7 +96,7 @@ def flatten_pairs(n, nb, nown, hist, pstart, nbf, live):
         for k in range(nown[i]):
             nbf[0, p] = i
             nbf[1, p] = nb[i, k]
-            live[p] = (hist[i, k, 0] != 0.0) | (hist[i, k, 1] != 0.0) | (hist[i, k, 2] != 0.0)
+            live[p] = spring_set(hist, i, k)
             p += 1
     pstart[n] = p
 

@@ -26,7 +26,7 @@ import math
 
 from numba import njit
 
-from .contact import add_wall_contact, clear_history, hertz_energy
+from .contact import add_wall_contact, clear_history, hertz_energy, rotating_wall_velocity
 
 __all__ = [
     "add_cylinder_contacts",
@@ -96,9 +96,7 @@ def add_cylinder_contacts(i, P, IA, cyls, npl, whist, pt, dt, t, fx, fy, fz, tx,
         cpx = rx + (ri - delta) * nx
         cpy = ry + (ri - delta) * ny
         cpz = rz + (ri - delta) * nz
-        vwx = om * (uy * cpz - uz * cpy)
-        vwy = om * (uz * cpx - ux * cpz)
-        vwz = om * (ux * cpy - uy * cpx)
+        vwx, vwy, vwz = rotating_wall_velocity(om, ux, uy, uz, cpx, cpy, cpz)
         fx, fy, fz, tx, ty, tz = add_wall_contact(
             P, IA, i, nx, ny, nz, delta, vwx, vwy, vwz, om * ux, om * uy, om * uz,
             int(cyls[w, 9]), pt, whist, hw, dt, fx, fy, fz, tx, ty, tz,
