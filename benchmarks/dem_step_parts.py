@@ -8,8 +8,9 @@ blender section at t = 20.5 s) or, without one, a settled 6,000-sphere drum (the
 - the pair scatter's parts: finding the contacts, copying their inputs into the blocks, the
   contact law over the blocks, the springs written back and the forces added; and the whole
   scatter (``pair_scatter``: the parts plus what they cost together);
-- the mesh contacts (``mesh_pass``) and the force pass (``gather_pass``: the sums, the half
-  kick and the drift prediction), both with dt = 0 so that repeated calls leave the state;
+- the mesh contacts (``mesh_pass``), the force pass (``gather_pass``: the sums and the half
+  kick) and the first half kick with the drift (``kick_drift``: with the skin and removal
+  check), all with dt = 0 so that repeated calls leave the state;
 - one neighbour rebuild, and a plain run for the step time and the rebuild interval.
 
 Reports the numba compile time apart (first calls). Usage::
@@ -157,42 +158,13 @@ def main(argv: list[str] | None = None) -> int:
     mesh_args = (n, s._P, s._IA, s._thist[c], s._tri_x, s._tri_mesh, s._mesh_par, s._pt,
                  s._dom, s._per, 0.0, s.t, s._mint, s._mflt, s._mcnt, s._mwork)  # fmt: skip
     t["mesh contacts (batched)"] = _timed(lambda: mesh_pass(*mesh_args), args.repeat)
-    t["force pass (sums, half kick, drift prediction)"] = _timed(
-        lambda: gather_pass(
-            n,
-            s._P,
-            s._F,
-            s._IA,
-            nown,
-            s._pf,
-            s._nrev,
-            s._rev_o,
-            s._rev_k,
-            True,
-            s._acc,
-            s._bounds,
-            s._planes,
-            s._cyls,
-            s._whist,
-            s._mint,
-            s._mflt,
-            s._mcnt,
-            s._pt,
-            s._dom,
-            s._per,
-            s._grav,
-            0.0,
-            s.t,
-            True,
-            s._XB,
-            s._rm,
-            s._sinks,
-            s._disp2,
-        ),  # fmt: skip
-        args.repeat,
-    )
-    t["first half kick and drift"] = _timed(
-        lambda: kick_drift(n, s._P, s._F, s._dom, s._per, 0.0), args.repeat
+    gather_args = (n, s._P, s._F, s._IA, nown, s._pf, s._nrev, s._rev_o, s._rev_k, True,
+                   s._acc, s._bounds, s._planes, s._cyls, s._whist, s._mint, s._mflt, s._mcnt,
+                   s._pt, s._dom, s._per, s._grav, 0.0, s.t)  # fmt: skip
+    t["force pass (sums, half kick)"] = _timed(lambda: gather_pass(*gather_args), args.repeat)
+    drift_args = (n, s._P, s._F, s._XB, s._rm, s._dom, s._per, s._sinks, 0.0, s._disp2)
+    t["first half kick, drift, skin and removal check"] = _timed(
+        lambda: kick_drift(*drift_args), args.repeat
     )
     for k, us in t.items():
         per = f", {us / m * 1e3:.1f} ns per contact" if k in (

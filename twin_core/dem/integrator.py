@@ -7,10 +7,11 @@ One step (spheres: no gyroscopic term)::
     F, T = pairs + walls + meshes + m g at x(t + dt), half-step velocities
     v += F/m dt/2;  w += T/I dt/2                  (gather_pass)
 
-Before each drift the Verlet skin criterion (:func:`twin_core.dem.partition.rebuild_due`)
-decides whether the lists are rebuilt; the displacement that the next drift will give each
-particle is predicted at the end of the previous step (fused into ``gather_pass``), together
-with its removal code when the drift takes it out of the domain or into a sink. The pair forces
+After each drift the Verlet skin criterion (:func:`twin_core.dem.partition.rebuild_due`)
+decides whether the lists are rebuilt before the forces (LIGGGHTS' order: ``fix nve``'s initial
+integrate, then the neighbour check); the drift measures each particle's displacement since the
+last build with the positions it writes, and flags the particles it took out of the domain or
+into a sink (the rebuild removes them). The pair forces
 come from one of the two schemes of :mod:`twin_core.dem.pairs` (the chunked scatter, default,
 or the two-pass scheme; the same sums for any thread count).
 
@@ -21,7 +22,6 @@ J. Chem. Phys. 76, 637 (velocity form); Allen & Tildesley, Computer Simulation o
 
 from __future__ import annotations
 
-import numpy as np
 from numba import njit, prange
 
 from .mesh_contacts import add_mesh_sums, flatten_triangles, mesh_pass
@@ -31,32 +31,23 @@ from .partition import rebuild, rebuild_due
 from .space import FMA, min_image
 from .walls import add_cylinder_contacts, add_plane_contacts
 
-__all__ = ["advance", "compute_forces", "gather_pass", "kick_drift", "predict"]
-
-
-@njit(cache=True, parallel=True, fastmath=FMA)
-def kick_drift(n, P, F, dom, per, dt):
-    """Velocity Verlet first half: ``v += F/m dt/2; w += T/I dt/2; x += v dt``; wrap periodic."""
-    hdt = 0.5 * dt
-    for i in prange(n):
-        invm = P[i, 11]
-        inv_i = P[i, 12]
-        for a in range(3):
-            P[i, 3 + a] += F[i, a] * invm * hdt
-            P[i, 6 + a] += F[i, 3 + a] * inv_i * hdt
-            x = P[i, a] + P[i, 3 + a] * dt
-            if per[a] != 0:
-                if x < dom[a]:
-                    x += dom[6 + a]
-                elif x >= dom[3 + a]:
-                    x -= dom[6 + a]
-            P[i, a] = x
+__all__ = ["advance", "compute_forces", "gather_pass", "kick_drift"]
 
 
 @njit(cache=True, inline="always")
-def _drift_to(P, F, i, a, hdt, dt):
-    """Coordinate a of particle i after the next half kick and drift: ``x + (v + F/m dt/2) dt``."""
-    return P[i, a] + (P[i, 3 + a] + F[i, a] * P[i, 11] * hdt) * dt
+def _kick_drift_axis(P, F, i, a, invm, inv_i, hdt, dt, dom, per):
+    """Axis a of particle i: ``v += F/m dt/2; w += T/I dt/2; x += v dt``, x wrapped along a
+    periodic axis; returns the new x."""
+    P[i, 3 + a] += F[i, a] * invm * hdt
+    P[i, 6 + a] += F[i, 3 + a] * inv_i * hdt
+    x = P[i, a] + P[i, 3 + a] * dt
+    if per[a] != 0:
+        if x < dom[a]:
+            x += dom[6 + a]
+        elif x >= dom[3 + a]:
+            x -= dom[6 + a]
+    P[i, a] = x
+    return x
 
 
 @njit(cache=True, inline="always")
@@ -66,38 +57,43 @@ def _outside(x, a, dom, per):
 
 
 @njit(cache=True, inline="always")
-def _predict_one(i, P, F, XB, rm, dom, per, sinks, dt, disp2):
-    """Squared displacement (minimum image) since the last build that the next drift gives
-    particle i, and its removal code if that drift takes it out of the domain (2) or into sink s
-    (3 + s). Straight-line code (no loop over the axes): it runs for every particle every step."""
-    hdt = 0.5 * dt
-    xn0 = _drift_to(P, F, i, 0, hdt, dt)
-    xn1 = _drift_to(P, F, i, 1, hdt, dt)
-    xn2 = _drift_to(P, F, i, 2, hdt, dt)
-    d0 = min_image(xn0 - XB[i, 0], dom[6], per[0] != 0)
-    d1 = min_image(xn1 - XB[i, 1], dom[7], per[1] != 0)
-    d2 = min_image(xn2 - XB[i, 2], dom[8], per[2] != 0)
+def _skin_and_removal(i, x0, x1, x2, XB, rm, dom, per, sinks, disp2):
+    """Squared displacement (minimum image) of particle i, now at (x0, x1, x2), since the last
+    build, and its removal code if it has left the domain (2) or entered sink s (3 + s).
+    Straight-line code (no loop over the axes): it runs for every particle every step."""
+    d0 = min_image(x0 - XB[i, 0], dom[6], per[0] != 0)
+    d1 = min_image(x1 - XB[i, 1], dom[7], per[1] != 0)
+    d2 = min_image(x2 - XB[i, 2], dom[8], per[2] != 0)
     disp2[i] = d0 * d0 + d1 * d1 + d2 * d2
     if rm[i] != 0:
         return
-    if _outside(xn0, 0, dom, per) or _outside(xn1, 1, dom, per) or _outside(xn2, 2, dom, per):
+    if _outside(x0, 0, dom, per) or _outside(x1, 1, dom, per) or _outside(x2, 2, dom, per):
         rm[i] = 2
         return
     for s in range(sinks.shape[0]):
         if (
-            sinks[s, 0] <= xn0 <= sinks[s, 3]
-            and sinks[s, 1] <= xn1 <= sinks[s, 4]
-            and sinks[s, 2] <= xn2 <= sinks[s, 5]
+            sinks[s, 0] <= x0 <= sinks[s, 3]
+            and sinks[s, 1] <= x1 <= sinks[s, 4]
+            and sinks[s, 2] <= x2 <= sinks[s, 5]
         ):
             rm[i] = 3 + s
             break
 
 
-@njit(cache=True, parallel=True)
-def predict(n, P, F, XB, rm, dom, per, sinks, dt, disp2):
-    """:func:`_predict_one` for every particle."""
+@njit(cache=True, parallel=True, fastmath=FMA)
+def kick_drift(n, P, F, XB, rm, dom, per, sinks, dt, disp2):
+    """Velocity Verlet first half: ``v += F/m dt/2; w += T/I dt/2; x += v dt``; wrap periodic.
+    With the new positions, each particle's squared displacement since the last build
+    (``disp2``, for the skin criterion) and its removal code (``rm``: 2 out of the domain,
+    3 + s in sink s), as LIGGGHTS checks its lists after ``fix nve``'s initial integrate."""
+    hdt = 0.5 * dt
     for i in prange(n):
-        _predict_one(i, P, F, XB, rm, dom, per, sinks, dt, disp2)
+        invm = P[i, 11]
+        inv_i = P[i, 12]
+        x0 = _kick_drift_axis(P, F, i, 0, invm, inv_i, hdt, dt, dom, per)
+        x1 = _kick_drift_axis(P, F, i, 1, invm, inv_i, hdt, dt, dom, per)
+        x2 = _kick_drift_axis(P, F, i, 2, invm, inv_i, hdt, dt, dom, per)
+        _skin_and_removal(i, x0, x1, x2, XB, rm, dom, per, sinks, disp2)
 
 
 @njit(cache=True, inline="always")
@@ -129,7 +125,7 @@ def _store_and_kick(i, P, F, grav, dt, fx, fy, fz, tx, ty, tz):
 def gather_pass(
     n, P, F, IA, nown, pf, nrev, rev_o, rev_k, use_acc, acc, bounds,
     planes, cyls, whist, mint, mflt, mcnt,
-    pt, dom, per, grav, dt, t, predict_next, XB, rm, sinks, disp2,
+    pt, dom, per, grav, dt, t,
 ):  # fmt: skip
     """Pass 2: total force/torque on each particle (pairs, planes, cylinders, meshes, gravity,
     summed in that order); half kick. The mesh contacts' forces come from
@@ -138,9 +134,7 @@ def gather_pass(
     Pair sums: with ``use_acc`` they are added from the chunk buffers ``acc`` (filled by
     :func:`twin_core.dem.pairs.pair_scatter`, chunk order); otherwise they are gathered from
     the slots ``pf`` of :func:`twin_core.dem.pairs.pair_pass` in the one-chunk scatter's order
-    (bit-identical sums).
-    With ``predict_next`` it also does the work of :func:`predict` for the next step (fused to
-    save a parallel region per step). Every particle writes only its own rows.
+    (bit-identical sums). Every particle writes only its own rows.
     """
     npl = planes.shape[0]
     for i in prange(n):
@@ -156,8 +150,6 @@ def gather_pass(
         )
         fx, fy, fz, tx, ty, tz = add_mesh_sums(i, mint, mflt, mcnt, fx, fy, fz, tx, ty, tz)
         _store_and_kick(i, P, F, grav, dt, fx, fy, fz, tx, ty, tz)
-        if predict_next:
-            _predict_one(i, P, F, XB, rm, dom, per, sinks, dt, disp2)
 
 
 @njit(cache=True)
@@ -165,7 +157,7 @@ def _forces_and_kick(
     n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live, clist,
     work, pf, acc, bounds, c,
     thist_b, tri_x, tri_mesh, mesh_par, mint, mflt, mcnt, mwork,
-    planes, cyls, pt, dom, per, grav, dt, t, serial, predict_next, XB, rm, sinks, disp2,
+    planes, cyls, pt, dom, per, grav, dt, t, serial,
 ):  # fmt: skip
     """Forces at time t on the live lists ``c`` and the second half kick: the pair forces by the
     chunked scatter (``serial``) or pass 1, the mesh contacts
@@ -188,7 +180,7 @@ def _forces_and_kick(
     gather_pass(
         n, P, F, IA, nown_b[c], pf, nrev, rev_o, rev_k, serial, acc, bounds,
         planes, cyls, whist, mint, mflt, mcnt,
-        pt, dom, per, grav, dt, t, predict_next, XB, rm, sinks, disp2,
+        pt, dom, per, grav, dt, t,
     )  # fmt: skip
 
 
@@ -202,24 +194,27 @@ def advance(
 ):  # fmt: skip
     """Advance up to ``nsteps`` velocity-Verlet steps.
 
-    Each step: (1) predict the drift; rebuild the lists first if the skin criterion asks for it
-    (:func:`twin_core.dem.partition.rebuild_due`); (2) half kick + drift; (3) move meshes;
-    (4) pass 1 and pass 2 forces + half kick (``serial``:
-    :func:`twin_core.dem.pairs.pair_scatter`, chunked, instead of pass 1). Returns (status,
-    steps_done, n); status != 0 means a list must be enlarged (``counters[2]`` holds the needed
-    size) before calling again.
+    Each step (LIGGGHTS' order): (1) half kick + drift, which also measures each particle's
+    displacement since the last build and flags the particles that left the domain or entered
+    a sink; (2) move the meshes; (3) rebuild the lists if the skin criterion asks for it
+    (:func:`twin_core.dem.partition.rebuild_due`), removing the flagged particles; (4) pass 1
+    and pass 2 forces + half kick (``serial``: :func:`twin_core.dem.pairs.pair_scatter`,
+    chunked, instead of pass 1). Returns (status, steps_done, n); status != 0 means a list must
+    be enlarged (``counters[2]`` holds the needed size) before calling again: that step's drift
+    is then done (``counters[3]`` = 1) and the next call goes on from its rebuild.
     """
     meshes_move = any_moving and tri_x.shape[0] > 0
     c = cur[0]
     flatten_pairs(n, nb_b[c], nown_b[c], hist_b[c], pstart, nbf, live)
     flatten_triangles(n, ntri_b[c], tri_nb_b[c], thist_b[c], mcnt, mint)
-    predict(n, P, F, XB, rm, dom, per, sinks, dt, disp2)
     for s in range(nsteps):
         t_new = (step0 + s + 1) * dt
-        if rebuild_due(n, disp2, rm, counters, skin, any_moving, tri_x0, tri_x, tri_xb,
-                       tri_mesh, mesh_par, t_new):  # fmt: skip
+        drifted = counters[3] != 0
+        if not drifted:
+            kick_drift(n, P, F, XB, rm, dom, per, sinks, dt, disp2)
             if meshes_move:
-                update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, (step0 + s) * dt)
+                update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
+        if drifted or rebuild_due(n, disp2, rm, counters, skin, meshes_move, tri_x, tri_xb):
             status, n_new, needed = rebuild(
                 n, P, F, IA, XB, rm, whist,
                 nb_b, hist_b, nown_b, rev_o, rev_k, nrev, cur,
@@ -228,6 +223,7 @@ def advance(
             )  # fmt: skip
             if status != 0:
                 counters[2] = needed
+                counters[3] = 1
                 return status, s, n
             n = n_new
             c = cur[0]
@@ -235,14 +231,12 @@ def advance(
             flatten_triangles(n, ntri_b[c], tri_nb_b[c], thist_b[c], mcnt, mint)
             counters[0] = 0
             counters[1] += 1
-            if meshes_move:
-                update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
-        kick_drift(n, P, F, dom, per, dt)
+            counters[3] = 0
         _forces_and_kick(
             n, P, F, IA, whist, nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live,
             clist, work, pf, acc, bounds, cur[0],
             thist_b, tri_x, tri_mesh, mesh_par, mint, mflt, mcnt, mwork,
-            planes, cyls, pt, dom, per, grav, dt, t_new, serial, True, XB, rm, sinks, disp2,
+            planes, cyls, pt, dom, per, grav, dt, t_new, serial,
         )  # fmt: skip
     return 0, nsteps, n
 
@@ -270,7 +264,6 @@ def compute_forces(
         work, pf, acc, bounds, c,
         thist_b, tri_x, tri_mesh, mesh_par, mint, mflt, mcnt, mwork,
         planes, cyls, pt, dom, per, grav, dt, t, serial,
-        False, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 6)), np.zeros(0),
     )  # fmt: skip
     hist_b[c][:] = h
     thist_b[c][:] = th

@@ -10,8 +10,9 @@ of each particle, and the Verlet skin criterion that decides when they are rebui
   so each tangential history is carried over (its sign flipped when the owner of a pair changes).
   Lists are double-buffered (``cur`` selects the live one); a list that overflows its width makes
   the rebuild return a status with the width needed, with nothing modified.
-- Skin criterion: rebuild when a particle would move more than skin/2 since the last build, or a
-  moving mesh plus a particle more than the skin, or a particle is to be removed.
+- Skin criterion (after the drift): rebuild when a particle has moved more than skin/2 since the
+  last build, or a moving mesh plus a particle more than the skin, or a particle is to be
+  removed.
 
 References: Allen & Tildesley, Computer Simulation of Liquids (2nd ed. 2017), Sec. 5.3 (Verlet
 lists, skin) and 5.3.2 (cell lists); Plimpton (1995), J. Comput. Phys. 117, 1 (half lists,
@@ -26,7 +27,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .meshes import max_tri_disp2, nearest_image_contact, update_mesh
+from .meshes import max_tri_disp2, nearest_image_contact
 from .space import min_image
 
 __all__ = ["axis_span", "cell_of", "rebuild", "rebuild_due", "wrap_cell"]
@@ -372,20 +373,18 @@ def rebuild(
 
 
 @njit(cache=True, inline="always")
-def rebuild_due(n, disp2, rm, counters, skin, any_moving, tri_x0, tri_x, tri_xb, tri_mesh,
-                mesh_par, t_new):  # fmt: skip
-    """Verlet skin criterion before the drift to ``t_new``: a rebuild is pending
-    (``counters[0]``), a particle is flagged for removal, the predicted displacement since the
-    last build ``disp2`` exceeds (skin/2)^2, or (moving meshes, placed at ``t_new`` here) the
-    largest triangle displacement plus the largest particle displacement exceeds the skin."""
+def rebuild_due(n, disp2, rm, counters, skin, meshes_move, tri_x, tri_xb):
+    """Verlet skin criterion after the drift: a rebuild is pending (``counters[0]``), a particle
+    is flagged for removal, its displacement since the last build ``disp2`` exceeds
+    (skin/2)^2, or (moving meshes, already placed at the new time) the largest triangle
+    displacement plus the largest particle displacement exceeds the skin."""
     dmax2 = 0.0
     flagged = 0
     for i in range(n):  # branch-free (it runs every step)
         dmax2 = max(dmax2, disp2[i])
         flagged |= rm[i]
     need = counters[0] != 0 or flagged != 0 or dmax2 > (0.5 * skin) ** 2
-    if any_moving and tri_x.shape[0] > 0 and not need:
-        update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
+    if meshes_move and not need:
         if math.sqrt(max_tri_disp2(tri_x, tri_xb)) + math.sqrt(dmax2) > skin:
             need = True
     return need

@@ -173,3 +173,47 @@ def test_poured_bed_solid_fraction(dem_seed):
     top = np.sort(sim.pos[:, 2])[-50]
     phi = sim.solid_fraction((0, 0, 0.003), (0.02, 0.02, top - 0.003))
     assert 0.57 <= phi <= 0.64
+
+
+def _settling_cloud(widths: tuple[int, int, int] | None) -> Simulation:
+    """A sparse cloud of 400 spheres falling onto a floor and a mesh ramp (periodic in x and y):
+    the lists fill up as the cloud packs. ``widths``: (kown, krev, ktri) allocated up front."""
+    from twin_core.dem import BoxRegion
+
+    sim = Simulation((0, 0, 0), (0.016, 0.016, 0.05), periodic=(True, True, False),
+                     materials=[_mat(e=0.3, mu=0.5, mur=0.05)], pair_chunks=1)  # fmt: skip
+    sim.add_plane((0, 0, 0), (0, 0, 1))
+    verts = np.array([[0, 0, 0.001], [0.016, 0, 0.001], [0, 0.016, 0.006], [0.016, 0.016, 0.006]])
+    sim.add_mesh(verts, np.array([[0, 1, 2], [1, 3, 2]]))
+    sim.insert_particles(400, BoxRegion((0, 0, 0.01), (0.016, 0.016, 0.05)), (0.9e-3, 1.1e-3),
+                         seed=3)  # fmt: skip
+    if widths is not None:
+        sim._resize(kown=widths[0], krev=widths[1], ktri=widths[2])
+    return sim
+
+
+def test_lists_enlarged_in_the_middle_of_a_step_continue_that_step():
+    """A neighbour list that overflows during a run is enlarged and the step goes on from its
+    rebuild (its drift is already done): the trajectory is the one of a run whose lists were
+    wide enough from the start, bit for bit (the list width does not enter the sums; an
+    identity, so one fixed seed). Without the resume flag the enlarged run drifts twice."""
+    wide = _settling_cloud((64, 64, 16))
+    kown = wide._nb.shape[2]
+    narrow = _settling_cloud(None)
+    statuses: list[int] = []
+    advance = narrow._advance
+
+    def recording_advance(*args, **kwargs):
+        out = advance(*args, **kwargs)
+        statuses.append(out[0])
+        return out
+
+    narrow._advance = recording_advance  # type: ignore[method-assign]
+    for sim in (wide, narrow):
+        sim.run(0.08)
+    assert wide._nb.shape[2] == kown  # the wide run never grew
+    assert sum(1 for s in statuses if s != 0) >= 2  # the narrow one grew inside advance
+    assert narrow.n_particles == wide.n_particles == 400
+    a, b = np.argsort(narrow.ids), np.argsort(wide.ids)
+    assert np.array_equal(narrow.pos[a], wide.pos[b])
+    assert np.array_equal(narrow.vel[a], wide.vel[b])
