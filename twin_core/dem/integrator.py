@@ -9,9 +9,10 @@ One step (spheres: no gyroscopic term)::
 
 After each drift the Verlet skin criterion (:func:`twin_core.dem.partition.rebuild_due`)
 decides whether the lists are rebuilt before the forces (LIGGGHTS' order: ``fix nve``'s initial
-integrate, then the neighbour check); the drift measures each particle's displacement since the
-last build with the positions it writes, and flags the particles it took out of the domain or
-into a sink (the rebuild removes them). The pair forces
+integrate, then the neighbour check); the drift measures the largest displacement since the last
+build with the positions it writes, and how far a particle went past a closed wall; particles
+out of the domain or in a sink are flagged (:func:`flag_removals`) and the rebuild removes them.
+The pair forces
 come from one of the two schemes of :mod:`twin_core.dem.pairs` (the chunked scatter, default,
 or the two-pass scheme; the same sums for any thread count).
 
@@ -22,6 +23,7 @@ J. Chem. Phys. 76, 637 (velocity form); Allen & Tildesley, Computer Simulation o
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit, prange
 
 from .mesh_contacts import add_mesh_sums, flatten_triangles, mesh_pass
@@ -31,7 +33,7 @@ from .partition import rebuild, rebuild_due
 from .space import FMA, min_image
 from .walls import add_cylinder_contacts, add_plane_contacts
 
-__all__ = ["advance", "compute_forces", "gather_pass", "kick_drift"]
+__all__ = ["advance", "compute_forces", "flag_removals", "gather_pass", "kick_drift"]
 
 
 @njit(cache=True, inline="always")
@@ -51,49 +53,70 @@ def _kick_drift_axis(P, F, i, a, invm, inv_i, hdt, dt, dom, per):
 
 
 @njit(cache=True, inline="always")
-def _outside(x, a, dom, per):
-    """Whether coordinate x lies outside the domain along a closed axis a."""
-    return per[a] == 0 and (x < dom[a] or x > dom[3 + a])
-
-
-@njit(cache=True, inline="always")
-def _skin_and_removal(i, x0, x1, x2, XB, rm, dom, per, sinks, disp2):
-    """Squared displacement (minimum image) of particle i, now at (x0, x1, x2), since the last
-    build, and its removal code if it has left the domain (2) or entered sink s (3 + s).
-    Straight-line code (no loop over the axes): it runs for every particle every step."""
-    d0 = min_image(x0 - XB[i, 0], dom[6], per[0] != 0)
-    d1 = min_image(x1 - XB[i, 1], dom[7], per[1] != 0)
-    d2 = min_image(x2 - XB[i, 2], dom[8], per[2] != 0)
-    disp2[i] = d0 * d0 + d1 * d1 + d2 * d2
-    if rm[i] != 0:
-        return
-    if _outside(x0, 0, dom, per) or _outside(x1, 1, dom, per) or _outside(x2, 2, dom, per):
-        rm[i] = 2
-        return
-    for s in range(sinks.shape[0]):
-        if (
-            sinks[s, 0] <= x0 <= sinks[s, 3]
-            and sinks[s, 1] <= x1 <= sinks[s, 4]
-            and sinks[s, 2] <= x2 <= sinks[s, 5]
-        ):
-            rm[i] = 3 + s
-            break
+def _closed_bounds(dom, per):
+    """Domain bounds (lo0, lo1, lo2, hi0, hi1, hi2), -inf/+inf along a periodic axis: the
+    bounds a particle can leave the domain through."""
+    lo0 = dom[0] if per[0] == 0 else -np.inf
+    lo1 = dom[1] if per[1] == 0 else -np.inf
+    lo2 = dom[2] if per[2] == 0 else -np.inf
+    hi0 = dom[3] if per[0] == 0 else np.inf
+    hi1 = dom[4] if per[1] == 0 else np.inf
+    hi2 = dom[5] if per[2] == 0 else np.inf
+    return lo0, lo1, lo2, hi0, hi1, hi2
 
 
 @njit(cache=True, parallel=True, fastmath=FMA)
-def kick_drift(n, P, F, XB, rm, dom, per, sinks, dt, disp2):
+def kick_drift(n, P, F, XB, dom, per, dt):
     """Velocity Verlet first half: ``v += F/m dt/2; w += T/I dt/2; x += v dt``; wrap periodic.
-    With the new positions, each particle's squared displacement since the last build
-    (``disp2``, for the skin criterion) and its removal code (``rm``: 2 out of the domain,
-    3 + s in sink s), as LIGGGHTS checks its lists after ``fix nve``'s initial integrate."""
+
+    With the positions it writes it measures, for the Verlet skin criterion (LIGGGHTS checks
+    its lists after ``fix nve``'s initial integrate), the largest squared displacement since
+    the last build (minimum image) ``max_i |x_i - xb_i|^2``, and the largest excursion past a
+    closed wall ``max_i max_a (lo_a - x_ia, x_ia - hi_a)`` (> 0 when a particle has left the
+    domain: :func:`flag_removals` then finds it). Both are reductions: no per-particle array,
+    no branch. Returns (dmax2, excursion)."""
     hdt = 0.5 * dt
+    lo0, lo1, lo2, hi0, hi1, hi2 = _closed_bounds(dom, per)
+    dmax2 = 0.0
+    excursion = -np.inf
     for i in prange(n):
         invm = P[i, 11]
         inv_i = P[i, 12]
         x0 = _kick_drift_axis(P, F, i, 0, invm, inv_i, hdt, dt, dom, per)
         x1 = _kick_drift_axis(P, F, i, 1, invm, inv_i, hdt, dt, dom, per)
         x2 = _kick_drift_axis(P, F, i, 2, invm, inv_i, hdt, dt, dom, per)
-        _skin_and_removal(i, x0, x1, x2, XB, rm, dom, per, sinks, disp2)
+        d0 = min_image(x0 - XB[i, 0], dom[6], per[0] != 0)
+        d1 = min_image(x1 - XB[i, 1], dom[7], per[1] != 0)
+        d2 = min_image(x2 - XB[i, 2], dom[8], per[2] != 0)
+        dmax2 = max(dmax2, d0 * d0 + d1 * d1 + d2 * d2)
+        out = max(max(lo0 - x0, x0 - hi0), max(lo1 - x1, x1 - hi1), max(lo2 - x2, x2 - hi2))
+        excursion = max(excursion, out)
+    return dmax2, excursion
+
+
+@njit(cache=True)
+def flag_removals(n, P, rm, dom, per, sinks):
+    """Removal code of each particle not yet flagged: 2 when it lies outside the domain along a
+    closed axis, 3 + s when it lies in sink s (axis-aligned box ``sinks[s]``: lo (3), hi (3)).
+    Returns the number of particles flagged (old and new)."""
+    lo0, lo1, lo2, hi0, hi1, hi2 = _closed_bounds(dom, per)
+    flagged = 0
+    for i in range(n):
+        x0, x1, x2 = P[i, 0], P[i, 1], P[i, 2]
+        if rm[i] == 0:
+            if x0 < lo0 or x0 > hi0 or x1 < lo1 or x1 > hi1 or x2 < lo2 or x2 > hi2:
+                rm[i] = 2
+            else:
+                for s in range(sinks.shape[0]):
+                    if (
+                        sinks[s, 0] <= x0 <= sinks[s, 3]
+                        and sinks[s, 1] <= x1 <= sinks[s, 4]
+                        and sinks[s, 2] <= x2 <= sinks[s, 5]
+                    ):
+                        rm[i] = 3 + s
+                        break
+        flagged += rm[i] != 0
+    return flagged
 
 
 @njit(cache=True, inline="always")
@@ -186,7 +209,7 @@ def _forces_and_kick(
 
 @njit(cache=True)
 def advance(
-    nsteps, step0, dt, n, P, F, IA, XB, rm, disp2, whist,
+    nsteps, step0, dt, n, P, F, IA, XB, rm, whist,
     nb_b, hist_b, nown_b, rev_o, rev_k, nrev, pstart, nbf, live, clist, work, pf, acc, bounds,
     cur, tri_nb_b, thist_b, ntri_b, mint, mflt, mcnt, mwork, tri_x0, tri_x, tri_xb, tri_mesh,
     mesh_par, any_moving,
@@ -194,9 +217,10 @@ def advance(
 ):  # fmt: skip
     """Advance up to ``nsteps`` velocity-Verlet steps.
 
-    Each step (LIGGGHTS' order): (1) half kick + drift, which also measures each particle's
-    displacement since the last build and flags the particles that left the domain or entered
-    a sink; (2) move the meshes; (3) rebuild the lists if the skin criterion asks for it
+    Each step (LIGGGHTS' order): (1) half kick + drift, which also measures the largest
+    displacement since the last build and the largest excursion past a closed wall; the
+    particles out of the domain or in a sink flagged (only when one went past a wall or there
+    are sinks); (2) move the meshes; (3) rebuild the lists if the skin criterion asks for it
     (:func:`twin_core.dem.partition.rebuild_due`), removing the flagged particles; (4) pass 1
     and pass 2 forces + half kick (``serial``: :func:`twin_core.dem.pairs.pair_scatter`,
     chunked, instead of pass 1). Returns (status, steps_done, n); status != 0 means a list must
@@ -210,11 +234,16 @@ def advance(
     for s in range(nsteps):
         t_new = (step0 + s + 1) * dt
         drifted = counters[3] != 0
+        due = drifted
         if not drifted:
-            kick_drift(n, P, F, XB, rm, dom, per, sinks, dt, disp2)
+            dmax2, excursion = kick_drift(n, P, F, XB, dom, per, dt)
+            flagged = 0
+            if excursion > 0.0 or sinks.shape[0] > 0:
+                flagged = flag_removals(n, P, rm, dom, per, sinks)
             if meshes_move:
                 update_mesh(tri_x0, tri_x, tri_mesh, mesh_par, t_new)
-        if drifted or rebuild_due(n, disp2, rm, counters, skin, meshes_move, tri_x, tri_xb):
+            due = rebuild_due(dmax2, flagged, counters, skin, meshes_move, tri_x, tri_xb)
+        if due:
             status, n_new, needed = rebuild(
                 n, P, F, IA, XB, rm, whist,
                 nb_b, hist_b, nown_b, rev_o, rev_k, nrev, cur,

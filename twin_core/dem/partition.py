@@ -373,16 +373,11 @@ def rebuild(
 
 
 @njit(cache=True, inline="always")
-def rebuild_due(n, disp2, rm, counters, skin, meshes_move, tri_x, tri_xb):
-    """Verlet skin criterion after the drift: a rebuild is pending (``counters[0]``), a particle
-    is flagged for removal, its displacement since the last build ``disp2`` exceeds
-    (skin/2)^2, or (moving meshes, already placed at the new time) the largest triangle
-    displacement plus the largest particle displacement exceeds the skin."""
-    dmax2 = 0.0
-    flagged = 0
-    for i in range(n):  # branch-free (it runs every step)
-        dmax2 = max(dmax2, disp2[i])
-        flagged |= rm[i]
+def rebuild_due(dmax2, flagged, counters, skin, meshes_move, tri_x, tri_xb):
+    """Verlet skin criterion after the drift: a rebuild is pending (``counters[0]``), particles
+    are flagged for removal (``flagged``), the largest squared displacement since the last build
+    ``dmax2`` exceeds (skin/2)^2, or (moving meshes, already placed at the new time) the
+    largest triangle displacement plus the largest particle displacement exceeds the skin."""
     need = counters[0] != 0 or flagged != 0 or dmax2 > (0.5 * skin) ** 2
     if meshes_move and not need:
         if math.sqrt(max_tri_disp2(tri_x, tri_xb)) + math.sqrt(dmax2) > skin:

@@ -185,7 +185,6 @@ class Simulation:
         self._IA = np.zeros((cap, 3), np.int64)
         self._XB = np.zeros((cap, 3))
         self._rm = np.zeros(cap, np.int64)
-        self._disp2 = np.zeros(cap)
         self._nb = np.zeros((2, cap, kown), np.int32)
         self._hist = np.zeros((2, cap, kown, 3))
         self._nown = np.zeros((2, cap), np.int32)
@@ -978,7 +977,7 @@ class Simulation:
         t0 = time.perf_counter()
         status, k, n = advance(
             chunk, self._step, dt, self._n, self._P, self._F, self._IA, self._XB,
-            self._rm, self._disp2, self._whist,
+            self._rm, self._whist,
             self._nb, self._hist, self._nown, self._rev_o, self._rev_k, self._nrev,
             self._pstart, self._nbf, self._live, self._clist, self._work,
             self._pf, self._acc, self._bounds, self._cur, self._tri_nb, self._thist, self._ntri,

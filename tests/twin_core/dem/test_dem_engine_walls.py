@@ -316,6 +316,32 @@ def test_outlet_and_remove_particles():
     assert set(sim.ids) <= set(ids[5:])
 
 
+def test_particles_leaving_through_any_face_are_removed_as_lost():
+    """A closed box without walls: spheres thrown in all directions leave through all six faces;
+    each is removed in the step that takes it out (never seen outside the domain between
+    steps) and counted as lost with its mass (a conservation identity)."""
+    sim = Simulation((0, 0, 0), (0.02, 0.02, 0.02), gravity=(0, 0, 0), materials=[_mat()])
+    sim.insert_particles(40, BoxRegion((0.004, 0.004, 0.004), (0.016, 0.016, 0.016)), R, seed=4)
+    rng = np.random.default_rng(0)
+    u = rng.normal(0.0, 1.0, (40, 3))
+    sim.vel[:] = 0.5 * u / np.linalg.norm(u, axis=1, keepdims=True)
+    mass = float(sim.mass.sum())
+    faces: set[tuple[int, int]] = set()
+
+    def inside(s: Simulation) -> None:
+        assert np.all((s.pos >= 0.0) & (s.pos <= 0.02))
+        # where each particle is about to leave: the face its velocity points to
+        edge = np.minimum(s.pos, 0.02 - s.pos) < 0.5e-3
+        for i, a in zip(*np.nonzero(edge)):
+            faces.add((int(a), int(s.vel[i, a] > 0)))
+
+    sim.run(0.3, callback=inside, callback_every_s=1e-4)
+    lost = sim.removed_counts["lost"]
+    assert sim.n_particles == 0 and lost[0] == 40
+    assert lost[1] == pytest.approx(mass, rel=1e-12)
+    assert len(faces) == 6
+
+
 def _bed(seed: int = 0, pair_scheme: str = "auto") -> Simulation:
     sim = Simulation((0, 0, 0), (0.012, 0.012, 0.03), periodic=(True, True, False),
                      materials=[_mat(e=0.3, mu=0.5, mur=0.02)], seed=seed,
