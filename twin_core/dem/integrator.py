@@ -248,7 +248,7 @@ def advance(
                 n, P, F, IA, XB, rm, whist,
                 nb_b, hist_b, nown_b, rev_o, rev_k, nrev, cur,
                 tri_nb_b, thist_b, ntri_b, tri_x, tri_xb,
-                dom, per, skin, rmax, removed,
+                dom, per, skin, rmax, removed, not serial,
             )  # fmt: skip
             if status != 0:
                 counters[2] = needed

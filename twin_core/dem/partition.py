@@ -30,7 +30,7 @@ from numba import njit, prange
 from .meshes import max_tri_disp2, nearest_image_contact
 from .space import min_image
 
-__all__ = ["axis_span", "cell_of", "rebuild", "rebuild_due", "wrap_cell"]
+__all__ = ["axis_span", "cell_of", "rebuild", "rebuild_due", "reverse_lists", "wrap_cell"]
 
 
 @njit(cache=True, inline="always")
@@ -205,6 +205,13 @@ def _build_reverse(n_new, nb, nown, rev_o, rev_k, nrev):
     return rover
 
 
+@njit(cache=True)
+def reverse_lists(n, nb, nown, rev_o, rev_k, nrev):
+    """The reverse lists of the half lists ``nb``, ``nown`` (:func:`rebuild` without them);
+    returns the width needed (more than ``rev_o.shape[1]``: enlarge and call again)."""
+    return _build_reverse(n, nb, nown, rev_o, rev_k, nrev)
+
+
 @njit(cache=True, parallel=True)
 def _build_tri(
     n_new, perm, P, cell_of_new, tstart, tcell, tri_x, dom, per, skin,
@@ -337,12 +344,14 @@ def rebuild(
     n, P, F, IA, XB, rm, whist,
     nb_b, hist_b, nown_b, rev_o, rev_k, nrev, cur,
     tri_nb_b, thist_b, ntri_b, tri_x, tri_xb,
-    dom, per, skin, rmax, removed,
+    dom, per, skin, rmax, removed, with_reverse,
 ):  # fmt: skip
     """Remove flagged particles, sort the rest by cell, rebuild the neighbour and triangle lists
     (carrying the contact histories) and commit. Returns (status, n_new, needed):
     status 0 ok, 1 pair list too short (``needed`` slots), 2 reverse list too short,
-    3 triangle list too short. On status != 0 nothing is modified."""
+    3 triangle list too short. On status != 0 nothing is modified. The reverse lists are
+    built only ``with_reverse`` (the two-pass scheme needs them, the scatter does not:
+    :func:`reverse_lists` builds them later from the same lists)."""
     ncx, ncy, ncz, cs = _cell_grid(dom, rmax, skin)
     perm, cell_new, cstart, n_new = _sort_by_cell(n, P, rm, dom, per, cs, ncx, ncy, ncz)
     old = cur[0]
@@ -353,9 +362,10 @@ def rebuild(
     )  # fmt: skip
     if over > 0:
         return 1, n, over
-    rover = _build_reverse(n_new, nb_b[new], nown_b[new], rev_o, rev_k, nrev)
-    if rover > rev_o.shape[1]:
-        return 2, n, rover
+    if with_reverse:
+        rover = _build_reverse(n_new, nb_b[new], nown_b[new], rev_o, rev_k, nrev)
+        if rover > rev_o.shape[1]:
+            return 2, n, rover
     if tri_x.shape[0] > 0:
         start, tcell = _bin_triangles(tri_x, dom, per, cs, ncx, ncy, ncz, rmax + skin)
         tover = _build_tri(

@@ -28,7 +28,7 @@ from .mesh_contacts import MBLOCK_WORDS, MFLT_COLS, MINT_ROWS
 from .meshes import update_mesh
 from .motion import RotationMotion, TranslationMotion, motion_from_dict
 from .pairs import BLOCK_WORDS
-from .partition import rebuild
+from .partition import rebuild, reverse_lists
 from .space import NPC
 from .threads import ThreadChooser, current_policy
 
@@ -157,6 +157,8 @@ class Simulation:
         self._rmax = 0.0
         self._n = 0
         self._forces_stale = True
+        #: the reverse lists (two-pass scheme only) do not match the neighbour lists
+        self._reverse_stale = True
         self._warned_resolution = False
         self._warned_chunks = False
         self._alloc(16, kown=8, krev=8, ktri=4)
@@ -809,18 +811,35 @@ class Simulation:
         return self.skin if self.skin is not None else 1e-3
 
     def _rebuild(self) -> None:
+        serial = self._serial()
         while True:
             status, n_new, needed = rebuild(
                 self._n, self._P, self._F, self._IA, self._XB, self._rm, self._whist,
                 self._nb, self._hist, self._nown, self._rev_o, self._rev_k, self._nrev,
                 self._cur, self._tri_nb, self._thist, self._ntri, self._tri_x, self._tri_xb,
                 self._dom, self._per, self._skin(), max(self._rmax, 1e-12), self._removed,
+                not serial,
             )  # fmt: skip
             if status == 0:
                 self._n = int(n_new)
                 self._counters[1] += 1
+                self._reverse_stale = serial
                 return
             self._grow(int(status), int(needed))
+
+    def _ensure_reverse(self) -> None:
+        """Build the reverse lists for the two-pass scheme if the lists were last rebuilt
+        without them (by the scatter scheme, or loaded from a checkpoint)."""
+        if self._serial() or not self._reverse_stale:
+            return
+        c = int(self._cur[0])
+        while True:
+            needed = reverse_lists(self._n, self._nb[c], self._nown[c], self._rev_o, self._rev_k,
+                                   self._nrev)  # fmt: skip
+            if needed <= self._rev_o.shape[1]:
+                self._reverse_stale = False
+                return
+            self._grow(2, int(needed))
 
     def _grow(self, status: int, needed: int) -> None:
         extra = max(2, needed // 8)  # lists stay narrow: less memory traffic per step
@@ -857,6 +876,7 @@ class Simulation:
 
     def _compute_forces(self) -> None:
         self._chunk_buffers()
+        self._ensure_reverse()
         compute_forces(
             self._n, self._P, self._F, self._IA, self._whist, self._nb, self._hist, self._nown,
             self._rev_o, self._rev_k, self._nrev, self._pstart, self._nbf, self._live, self._clist,
@@ -974,6 +994,8 @@ class Simulation:
             numba.set_num_threads(chooser.next_threads())
         n0 = self._n
         self._chunk_buffers()
+        self._ensure_reverse()
+        rebuilds0 = int(self._counters[1])
         t0 = time.perf_counter()
         status, k, n = advance(
             chunk, self._step, dt, self._n, self._P, self._F, self._IA, self._XB,
@@ -990,6 +1012,8 @@ class Simulation:
             self._counters, self._serial(),
         )  # fmt: skip
         el = time.perf_counter() - t0
+        if self._serial() and int(self._counters[1]) != rebuilds0:
+            self._reverse_stale = True  # rebuilt without the reverse lists
         if chooser is not None:
             chooser.record(numba.get_num_threads(), n0 * int(k), el)
         return int(status), int(k), int(n), el

@@ -212,7 +212,7 @@ def test_lists_enlarged_in_the_middle_of_a_step_continue_that_step():
     for sim in (wide, narrow):
         sim.run(0.08)
     assert wide._nb.shape[2] == kown  # the wide run never grew
-    assert sum(1 for s in statuses if s != 0) >= 2  # the narrow one grew inside advance
+    assert any(s != 0 for s in statuses)  # the narrow one grew inside advance
     assert narrow.n_particles == wide.n_particles == 400
     a, b = np.argsort(narrow.ids), np.argsort(wide.ids)
     assert np.array_equal(narrow.pos[a], wide.pos[b])

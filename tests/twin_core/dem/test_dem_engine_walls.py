@@ -434,6 +434,27 @@ def test_results_do_not_depend_on_thread_count():
     assert a._bounds.tolist()[0] == 0 and a._bounds.tolist()[-1] == a.n_particles
 
 
+def test_switching_to_the_two_pass_scheme_builds_its_reverse_lists():
+    """The scatter scheme rebuilds the lists without the reverse lists only the two-pass scheme
+    reads; a run switched to the two-pass scheme (or resumed from a checkpoint) builds them
+    first: the switched run continues bit for bit as the one-chunk scatter run it equals (an
+    identity, as above; with stale reverse lists the pair forces come out wrong)."""
+    numba.set_num_threads(1)
+    sw = _bed(pair_scheme="scatter")
+    sw.pair_chunks = 1
+    sw.run(0.12)  # a bed resting on the floor: contacts in every step
+    assert sw._reverse_stale
+    sw.pair_scheme = "two_pass"
+    sw.run(1200 * sw.dt)
+    assert not sw._reverse_stale
+    ref = _bed(pair_scheme="scatter")
+    ref.pair_chunks = 1
+    ref.run(sw._step * sw.dt)  # the same number of steps in one run
+    assert ref._step == sw._step
+    assert np.array_equal(ref.pos, sw.pos)
+    assert np.array_equal(ref.omega, sw.omega)
+
+
 def test_chunked_scatter_sums_the_same_forces_as_one_chunk():
     """The chunk buffers add up to the one-chunk pair forces (only the summation order differs):
     forces on a settled, touching bed agree to 1e-12 of the largest force for 1-4 chunks, and
