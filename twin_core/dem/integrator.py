@@ -12,9 +12,8 @@ decides whether the lists are rebuilt before the forces (LIGGGHTS' order: ``fix 
 integrate, then the neighbour check); the drift measures the largest displacement since the last
 build with the positions it writes, and how far a particle went past a closed wall; particles
 out of the domain or in a sink are flagged (:func:`flag_removals`) and the rebuild removes them.
-The pair forces
-come from one of the two schemes of :mod:`twin_core.dem.pairs` (the chunked scatter, default,
-or the two-pass scheme; the same sums for any thread count).
+The pair forces come from one of the two schemes of :mod:`twin_core.dem.pairs` (the chunked
+scatter, default, or the two-pass scheme; the same sums for any thread count).
 
 References: Verlet (1967), Phys. Rev. 159, 98; Swope, Andersen, Berens & Wilson (1982),
 J. Chem. Phys. 76, 637 (velocity form); Allen & Tildesley, Computer Simulation of Liquids
@@ -73,8 +72,8 @@ def kick_drift(n, P, F, XB, dom, per, dt):
     its lists after ``fix nve``'s initial integrate), the largest squared displacement since
     the last build (minimum image) ``max_i |x_i - xb_i|^2``, and the largest excursion past a
     closed wall ``max_i max_a (lo_a - x_ia, x_ia - hi_a)`` (> 0 when a particle has left the
-    domain: :func:`flag_removals` then finds it). Both are reductions: no per-particle array,
-    no branch. Returns (dmax2, excursion)."""
+    domain: :func:`flag_removals` then finds it). Both are reductions of the parallel loop: no
+    per-particle array, no branch for the checks. Returns (dmax2, excursion)."""
     hdt = 0.5 * dt
     lo0, lo1, lo2, hi0, hi1, hi2 = _closed_bounds(dom, per)
     dmax2 = 0.0
