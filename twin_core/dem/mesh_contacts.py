@@ -91,6 +91,9 @@ MBLOCK_WORDS = max(_GIN + _GOUT, _LIN + _LOUT) * _ROW
 MINT_ROWS = 8
 MFLT_COLS = 8
 _FAR = 2  # contact code of a candidate with a second periodic image within reach
+#: reach of a sphere of radius r, ``r^2 (1 + 1e-9)``: a margin over the exact test on the
+#: distance, the same in the SIMD geometry and in the full image search
+_REACH_MARGIN = 1.0 + 1e-9
 
 
 @njit(cache=True)
@@ -153,7 +156,7 @@ def closest_block(nq, w, dom, per):
         sx, _, _, gx1 = axis_images(px, ax, bx, cx, dom[6], per[0] != 0)
         sy, _, _, gy1 = axis_images(py, ay, by, cy, dom[7], per[1] != 0)
         sz, _, _, gz1 = axis_images(pz, az, bz, cz, dom[8], per[2] != 0)
-        reach2 = r * r * (1.0 + 1e-9)
+        reach2 = r * r * _REACH_MARGIN
         far = (gx1 * gx1 < reach2) | (gy1 * gy1 < reach2) | (gz1 * gz1 < reach2)
         qx, qy, qz = px + sx, py + sy, pz + sz
         kx, ky, kz, feat = closest_point_triangle(qx, qy, qz, ax, ay, az, bx, by, bz, cx, cy, cz)
@@ -193,7 +196,7 @@ def _far_contact(p, P, tri_x, tri_mesh, motion, dom, per, mint, mflt):
     tq = np.uint64(mint[1, p])
     r = P[i, 9]
     qx, qy, qz, kx, ky, kz, f, d2 = nearest_image_contact(
-        P[i, 0], P[i, 1], P[i, 2], tri_x, tq, dom, per, r * r * (1.0 + 1e-9)
+        P[i, 0], P[i, 1], P[i, 2], tri_x, tq, dom, per, r * r * _REACH_MARGIN
     )
     dist = math.sqrt((kx - qx) ** 2 + (ky - qy) ** 2 + (kz - qz) ** 2)
     touch = d2 < math.inf and dist < r and dist > 0.0 and motion[tri_mesh[tq], 0] != 0.0

@@ -883,7 +883,8 @@ class Simulation:
             self._work, self._pf,
             self._acc, self._bounds, self._cur,
             self._tri_nb, self._thist, self._ntri, self._mint, self._mflt, self._mcnt,
-            self._mwork, self._tri_x, self._tri_mesh, self._mesh_par, self._planes, self._cyls, self._pt, self._dom, self._per,
+            self._mwork, self._tri_x, self._tri_mesh, self._mesh_par, self._planes, self._cyls,
+            self._pt, self._dom, self._per,
             self._grav, self.dt, self.t, self._serial(),
         )  # fmt: skip
         self._forces_stale = False
