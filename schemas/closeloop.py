@@ -134,6 +134,12 @@ class ProductReading(StrictModel):
     outlet_max_pct_w_w: Finite
     t_start_s: Finite
     t_end_s: Finite
+    out_of_spec_s: list[tuple[Finite, Finite]] | None = Field(
+        None,
+        description="[first, last] plant times (s) of each stretch this reading puts outside "
+        "the specification (what the diverter diverts); None: not computed (the whole window "
+        "is diverted when the outlet range leaves the specification)",
+    )
 
 
 class StructureEntry(StrictModel):

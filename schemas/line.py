@@ -332,6 +332,15 @@ class CloseLoopSettings(StrictModel):
     residual -> candidate effects -> held-out test); ``skip_s``: start of a window (after the
     start of the run) left out of the fit while the model's steady-state start wears off;
     ``candidates``: effect names tried (empty: all); ``max_effects``: effects added per window.
+
+    Error control over time: ``false_claims_per_day`` is the probability, on a line with no
+    missing effect, that the check claims one at least once in a day of operation. Each window
+    spends the same share of it: its claim test runs at level
+    ``false_claims_per_day * interval_s / 86400`` (a constant-rate alpha-spending rule, Lan &
+    DeMets 1983, Biometrika 70:659; by Bonferroni's inequality the daily bound holds whatever
+    the dependence of overlapping windows), capped at 0.05 (``twin_core.closeloop.online.claim_alpha``). ``noise_span_s``: the plant time
+    over which the probe's 1/f noise has its declared standard deviation; a window is a
+    segment of that process, so its slow wander is noise, not a sensor offset or gain.
     """
 
     interval_s: Positive = 300.0
@@ -340,6 +349,8 @@ class CloseLoopSettings(StrictModel):
     skip_s: NonNegative = 150.0
     candidates: list[Ident] = Field(default_factory=list)
     max_effects: int = Field(1, ge=1, le=2)
+    false_claims_per_day: float = Field(0.05, gt=0.0, lt=1.0)
+    noise_span_s: Positive = 86400.0
 
     @model_validator(mode="after")
     def _windows(self) -> CloseLoopSettings:

@@ -96,6 +96,8 @@ class CloseLoopService(Service):
             skip_s=c.skip_s,
             candidates=c.candidates,
             max_effects=c.max_effects,
+            false_claims_per_day=c.false_claims_per_day,
+            noise_span_s=c.noise_span_s,
         )
         self.log_ids = OutputLog(self.state_path / "closeloop.published")
         self.progress = ProgressReport(self.state_path / "closeloop.progress", self.progress_step_s)

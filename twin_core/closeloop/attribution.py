@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from twin_core.closeloop.identify import FitResult, Identification, effect_side, refit
+from twin_core.closeloop.quality import true_runs
 
 __all__ = ["Attribution", "attribute"]
 
@@ -128,3 +129,14 @@ def outlet_summary(outlet: np.ndarray, mask: np.ndarray) -> dict[str, float]:
         "outlet_min_pct_w_w": float(np.min(c)),
         "outlet_max_pct_w_w": float(np.max(c)),
     }
+
+
+def out_of_spec_spans(
+    t_s: np.ndarray, outlet: np.ndarray, lower: float, upper: float
+) -> list[tuple[float, float]]:
+    """[first, last] plant times (s) of each stretch where ``outlet`` (% w/w) is outside
+    [lower, upper]: the part of a window whose product a product-side reading puts out of
+    specification."""
+    c = np.asarray(outlet, dtype=float)
+    t = np.asarray(t_s, dtype=float)
+    return [(float(t[a]), float(t[b - 1])) for a, b in true_runs((c < lower) | (c > upper))]

@@ -49,6 +49,12 @@ class RunData:
 
     ``stamps``: the raw message stamps per stream (``nir``, ``<feeder>:flow``) when the record
     has them (a recording, the live twin), for the data-quality check.
+
+    ``noise_span_s``: plant time over which the probe's 1/f noise has its declared standard
+    deviation (``schemas.line.NIRNoise.pink_sd``) when this record is a segment of a longer run
+    (a live window); None: the record is the whole run. The 1/f power at frequencies below
+    1 / (record length) shows in a short window as a slow offset or trend: it is noise, and
+    the tests must know it (:meth:`noise_record_n`).
     """
 
     t_s: np.ndarray
@@ -57,8 +63,11 @@ class RunData:
     events: list[dict[str, Any]] = field(default_factory=list)
     name: str = "run"
     stamps: dict[str, StreamStamps] = field(default_factory=dict)
+    noise_span_s: float | None = None
 
     def __post_init__(self) -> None:
+        if self.noise_span_s is not None and not self.noise_span_s > 0:
+            raise ValueError(f"noise_span_s must be > 0 or None, got {self.noise_span_s!r}")
         self.t_s = np.asarray(self.t_s, dtype=float)
         self.measured = np.asarray(self.measured, dtype=float)
         if self.measured.shape != self.t_s.shape:
@@ -69,6 +78,17 @@ class RunData:
             raise ValueError("inputs.t_s must equal t_s")
         if np.sum(np.isfinite(self.measured)) < 10:
             raise ValueError("measured must hold at least 10 finite samples")
+
+    def noise_record_n(self) -> int:
+        """Samples of the 1/f process this record is a segment of: the record itself, or
+        ``noise_span_s`` of plant time when longer (``twin_core.closeloop.noise.NoiseWhitener``'s
+        ``n_record``: its autocorrelation c(k) = g(k) / g(0), g the Wiener-Khinchin sum over
+        the bins of that span)."""
+        n = int(self.t_s.size)
+        if self.noise_span_s is None or n < 2:
+            return n
+        dt = float(np.median(np.diff(self.t_s)))
+        return max(n, int(round(self.noise_span_s / dt)))
 
     @classmethod
     def from_line_run(cls, run: Any, name: str = "run") -> RunData:
@@ -98,7 +118,7 @@ class RunData:
         ev = [e for e in self.events if t0 <= float(e["t_s"]) < t1]
         t_last = float(self.t_s[m][-1])
         stamps = {k: v.between(t0, t_last) for k, v in self.stamps.items()}
-        return RunData(self.t_s[m], self.measured[m], sub, ev, self.name, stamps)
+        return RunData(self.t_s[m], self.measured[m], sub, ev, self.name, stamps, self.noise_span_s)
 
 
 @dataclass

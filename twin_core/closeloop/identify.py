@@ -158,7 +158,8 @@ class _Evaluator:
         self.n_eval = 0
         pred0 = self.predict([])
         self.sigma = np.maximum(noise_sd(pred0, self.sensor.noise), 1e-6)
-        self.whiten = NoiseWhitener(self.sigma, self.sensor.noise)
+        self.n_record = data.noise_record_n()
+        self.whiten = NoiseWhitener(self.sigma, self.sensor.noise, self.n_record)
         self.n_eval = 0
         self.y = np.zeros_like(self.t)
         self.usable = np.zeros(self.t.size, dtype=bool)
@@ -709,7 +710,7 @@ def _status_innovations(
     the proportional part of the noise with it), and the innovations of a unit level and of a
     linear trend (per hour, centred on the tested samples): the status tests' inputs."""
     sigma = np.maximum(noise_sd(pred, ev.sensor.noise), 1e-6)
-    whiten = NoiseWhitener(sigma, ev.sensor.noise)
+    whiten = NoiseWhitener(sigma, ev.sensor.noise, ev.n_record)
     z = np.where(ev.usable, (ev.y - pred) / sigma, 0.0)
     tc = (ev.t - float(np.mean(ev.t[mask]))) / 3600.0
     cols = [

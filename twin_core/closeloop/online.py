@@ -14,6 +14,14 @@ effect is found once and later windows check that the fix holds (``consistent``)
 
 Windows are closed in plant time, when every stream has passed their end, so the findings do not
 depend on the order or the speed at which the samples arrive.
+
+Error control over time. A check every ``interval_s``, each at its own 5 % level, claims an
+effect sooner or later on any line: what is controlled is ``false_claims_per_day``, the
+probability of at least one false claim in a day of operation, spent at a constant rate over
+the day's windows (:func:`claim_alpha`; Lan & DeMets 1983, Biometrika 70:659, with a linear
+spending function; the bound is Bonferroni's and holds however the overlapping windows
+correlate). Each window is a segment of the probe's 1/f noise over ``noise_span_s``
+(``twin_core.closeloop.data.RunData.noise_span_s``): its slow wander is noise to the tests.
 """
 
 from __future__ import annotations
@@ -30,6 +38,32 @@ from twin_core.closeloop.data import StreamStamps
 from twin_core.closeloop.record import LineRecord
 from twin_core.closeloop.report import Finding, online_finding
 from twin_core.plant.model import LineInputs, LineModel
+
+#: plant seconds of the close-loop's false-claim budget
+DAY_S = 86400.0
+
+
+def claim_alpha(false_claims_per_day: float, interval_s: float) -> float:
+    """Level of one window's claim test under constant-rate alpha spending over a day:
+
+        alpha_w = min(0.05, alpha_day * interval_s / 86400)
+
+    so that P(any false claim in a day) <= sum of the day's alpha_w = alpha_day (Bonferroni;
+    Lan & DeMets 1983, Biometrika 70:659, linear spending function)."""
+    if not 0 < false_claims_per_day < 1:
+        raise ValueError(f"false_claims_per_day must be in (0, 1), got {false_claims_per_day!r}")
+    if interval_s <= 0:
+        raise ValueError(f"interval_s must be > 0, got {interval_s!r}")
+    return min(0.05, false_claims_per_day * interval_s / DAY_S)
+
+
+def spec_limits(config: LineConfig) -> tuple[float, float] | None:
+    """(lower, upper) % w/w of the measured component in a ``LineSpec``'s ``spec``, or None."""
+    comp = config.sensor.component
+    for lim in getattr(config, "spec", None) or []:
+        if lim.component == comp:
+            return (float(lim.lower_pct_w_w), float(lim.upper_pct_w_w))
+    return None
 
 
 @dataclass(frozen=True)
@@ -63,6 +97,11 @@ class OnlineCloseLoop:
         candidates: effect names tried (empty: all registered effects).
         max_effects: effects claimed per window (1 or 2).
         effects: effects already adopted (dict form), e.g. after a restart.
+        false_claims_per_day: the daily false-claim budget (module docstring).
+        noise_span_s: plant time over which the 1/f noise has its declared sd (module docstring).
+        limits: specification (lower, upper, % w/w) of the measured component: a product-side
+            reading names the stretches it puts out of specification (what the diverter
+            diverts); None: the config's ``spec`` when it has one (a ``LineSpec``).
     """
 
     def __init__(
@@ -77,6 +116,9 @@ class OnlineCloseLoop:
         candidates: Sequence[str] = (),
         max_effects: int = 1,
         effects: Sequence[Mapping[str, Any]] = (),
+        false_claims_per_day: float = 0.05,
+        noise_span_s: float = DAY_S,
+        limits: tuple[float, float] | None = None,
     ) -> None:
         if dt_s <= 0:
             raise ValueError(f"dt_s must be > 0, got {dt_s!r}")
@@ -95,6 +137,11 @@ class OnlineCloseLoop:
         self.skip_s = float(skip_s)
         self.candidates = list(candidates)
         self.max_effects = int(max_effects)
+        self.alpha = claim_alpha(false_claims_per_day, interval_s)
+        if not noise_span_s > 0:
+            raise ValueError(f"noise_span_s must be > 0, got {noise_span_s!r}")
+        self.noise_span_s = float(noise_span_s)
+        self.limits = limits if limits is not None else spec_limits(config)
         self.components = config.components
         self.model_ = LineModel(config, list(effects))
         self.record = LineRecord(self.components, self.dt_s, config.sensor.component)
@@ -178,11 +225,23 @@ class OnlineCloseLoop:
         """Check the current model on a window; adopt the model of an explained finding (its
         product-side reading when the product is at risk). A partly explained finding is
         reported, not adopted: something the model cannot say is still there."""
-        options: dict[str, Any] = {"skip_s": data.skip_s, "max_effects": self.max_effects}
+        options: dict[str, Any] = {
+            "skip_s": data.skip_s,
+            "max_effects": self.max_effects,
+            "alpha": self.alpha,
+        }
         if self.candidates:
             options["candidates"] = list(self.candidates)
         f = online_finding(
-            data.t_s, data.measured, data.inputs, self.model_, data.events, options, data.stamps
+            data.t_s,
+            data.measured,
+            data.inputs,
+            self.model_,
+            data.events,
+            options,
+            data.stamps,
+            noise_span_s=self.noise_span_s,
+            limits=self.limits,
         )
         if f.status == "explained":
             self.model_ = LineModel(self.config, f.augmented_effects)

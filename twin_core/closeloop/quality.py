@@ -121,7 +121,7 @@ class DataQuality:
         return [f.to_dict() for f in self.flags]
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """[start, end) of each run of True."""
     d = np.diff(np.concatenate([[0], np.asarray(mask, dtype=np.int8), [0]]))
     return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
@@ -142,7 +142,7 @@ def _repeat_runs(x: np.ndarray, tol: float) -> tuple[list[tuple[int, int]], np.n
     """Runs of identical consecutive values of a finite series: [start, end) in ``x``'s
     indices (a run of L values holds L - 1 repeats), and the repeat flags of the pairs."""
     same = np.abs(np.diff(x)) <= tol
-    return [(a, b + 1) for a, b in _runs(same)], same
+    return [(a, b + 1) for a, b in true_runs(same)], same
 
 
 def stuck_runs(x: np.ndarray, opt: QualityOptions, exempt_zero: bool) -> list[tuple[int, int]]:
@@ -194,7 +194,7 @@ def clipped_runs(
     x: np.ndarray, opt: QualityOptions, limits: tuple[float, float] | None
 ) -> list[tuple[int, int]]:
     """Runs of clipped samples (:func:`clipped_mask`)."""
-    return _runs(clipped_mask(x, opt, limits)[0])
+    return true_runs(clipped_mask(x, opt, limits)[0])
 
 
 def censored_stretches(
@@ -214,7 +214,7 @@ def censored_stretches(
     near = clipped.copy()
     for level in levels:
         near |= np.abs(med - level) <= 3.0 * sigma
-    return [(a, b) for a, b in _merge_runs(_runs(near), window) if clipped[a:b].any()]
+    return [(a, b) for a, b in _merge_runs(true_runs(near), window) if clipped[a:b].any()]
 
 
 def burst_threshold(window: int, rate: float, n: int, false_alarm: float) -> int:
@@ -265,7 +265,7 @@ def rough_stretches(
     mean = np.convolve(d2, np.ones(window) / window, mode="same")
     half = window // 2
     out = []
-    for a, b in _runs(mean > ratio):
+    for a, b in true_runs(mean > ratio):
         lo, hi = max(a - half, 0), min(b + half, x.size)
         rough = lo + np.flatnonzero(d2[lo:hi] > 9.0)
         if rough.size:
@@ -285,7 +285,7 @@ def burst_runs(
         k = burst_threshold(w, rate, n, fa)
         for a, b, _ in spike_bursts(outliers, w, k):
             hot[a:b] = True
-    return [(a, b, int(outliers[a:b].sum())) for a, b in _runs(hot)]
+    return [(a, b, int(outliers[a:b].sum())) for a, b in true_runs(hot)]
 
 
 def spike_bursts(outliers: np.ndarray, window: int, k: int) -> list[tuple[int, int, int]]:
@@ -299,7 +299,7 @@ def spike_bursts(outliers: np.ndarray, window: int, k: int) -> list[tuple[int, i
         if idx[i + k - 1] - idx[i] < window:
             hot[idx[i] : idx[i + k - 1] + 1] = True
     out = []
-    for a, b in _runs(hot):
+    for a, b in true_runs(hot):
         n_out = int(outliers[a:b].sum())
         out.append((a, b, n_out))
     return out
@@ -315,7 +315,7 @@ def stamp_flags(series: str, stamps: StreamStamps, period_s: float) -> list[Data
     seq = None if stamps.seq is None else np.asarray(stamps.seq, dtype=np.int64)
     dseq = np.diff(seq) if seq is not None else None
     flags: list[DataFlag] = []
-    for a, b in _runs(d == 0):
+    for a, b in true_runs(d == 0):
         flags.append(DataFlag("duplicate_stamp", series, float(t[a]), float(t[b]), b - a))
     for i in np.flatnonzero(d < 0):
         flags.append(DataFlag("time_jump", series, float(t[i + 1]), float(t[i]), 1))
@@ -379,7 +379,7 @@ class _Checker:
         first = int(np.argmax(finite))
         expected[first::step] = True
         if NIR not in self.data.stamps:
-            for a, b in _runs(expected & ~finite):
+            for a, b in true_runs(expected & ~finite):
                 n_missing = int(expected[a:b].sum())
                 if n_missing >= self.opt.min_gap_samples:
                     self.flag("gap", NIR, a, b, n_missing, 0.0)
@@ -410,7 +410,7 @@ class _Checker:
         for a, b in rough_stretches(resid, sigma, self.opt.rough_window, self.opt.rough_ratio):
             hot[a:b] = True
         gap = min(self.opt.burst_windows)
-        for a, b in _merge_runs(_runs(hot), gap):
+        for a, b in _merge_runs(true_runs(hot), gap):
             self.flag("spike_burst", NIR, idx[a], idx[b - 1] + 1, b - a, 0.0)
 
     def flows(self) -> None:

@@ -29,7 +29,12 @@ from typing import Any
 
 import numpy as np
 
-from twin_core.closeloop.attribution import Attribution, attribute, outlet_summary
+from twin_core.closeloop.attribution import (
+    Attribution,
+    attribute,
+    out_of_spec_spans,
+    outlet_summary,
+)
 from twin_core.closeloop.data import RunData, StreamStamps
 from twin_core.closeloop.diagnostics import pulse_responses, residual_diagnostics
 from twin_core.closeloop.discriminate import Design, DesignOptions, design_measurement
@@ -240,9 +245,10 @@ class CloseLoopResult:
             }
         return out
 
-    def product_reading(self) -> dict[str, Any] | None:
+    def product_reading(self, limits: tuple[float, float] | None = None) -> dict[str, Any] | None:
         """The product-side reading (``schemas.closeloop.ProductReading``) when the product is
-        at risk."""
+        at risk; with the specification ``limits`` (lower, upper, % w/w) of the measured
+        component, the stretches it puts out of specification (``out_of_spec_s``)."""
         if not self.product_at_risk or self.attribution.reading is None:
             return None
         fr = self.attribution.reading
@@ -251,13 +257,18 @@ class CloseLoopResult:
         outlet = model.outlet(self.data.inputs)[comp]
         mask = self.ident.train | self.ident.heldout
         t = self.data.t_s[mask]
-        return {
+        out = {
             "effects": [e.to_dict() for e in fr.effects],
             "labels": list(fr.labels),
             **outlet_summary(outlet, mask),
             "t_start_s": float(t[0]),
             "t_end_s": float(t[-1]),
         }
+        if limits is not None:
+            out["out_of_spec_s"] = [
+                list(span) for span in out_of_spec_spans(t, outlet[mask], *limits)
+            ]
+        return out
 
     def effect_entries(self) -> list[dict[str, Any]]:
         """The claimed effects with their step scores and equivalents."""
@@ -536,6 +547,9 @@ def online_finding(
     events: Sequence[Mapping[str, Any]] = (),
     options: IdentifyOptions | Mapping[str, Any] | None = None,
     stamps: Mapping[str, StreamStamps] | None = None,
+    *,
+    noise_span_s: float | None = None,
+    limits: tuple[float, float] | None = None,
 ) -> Finding:
     """Close the loop on one window of arrays (the live twin's periodic check).
 
@@ -545,11 +559,20 @@ def online_finding(
     blender). ``stamps``: the raw message stamps of the window's streams (data quality).
     Returns a :class:`Finding`; ``augmented_effects`` are the model's effects plus the ones
     found (or their product-side reading), ready for ``LineModel(config, augmented_effects)``.
+    ``noise_span_s``: the run the window is a segment of (``RunData.noise_span_s``).
+    ``limits``: the measured component's specification (lower, upper, % w/w): the product-side
+    reading then names the stretches it puts out of specification (what the diverter diverts).
     """
     if options is None:
         options = IdentifyOptions(skip_s=150.0)
     data = RunData(
-        t_s, measured, inputs, [dict(e) for e in events], name="window", stamps=dict(stamps or {})
+        t_s,
+        measured,
+        inputs,
+        [dict(e) for e in events],
+        name="window",
+        stamps=dict(stamps or {}),
+        noise_span_s=noise_span_s,
     )
     res = close_loop(data, declared_model, options)
     rep = res.to_dict()
@@ -562,7 +585,9 @@ def online_finding(
         t_end_s=float(t_s[-1]),
         data_quality=rep["data_quality"],
         product_at_risk=rep["product_at_risk"],
-        product_reading=rep["product_reading"],
+        product_reading=res.product_reading(limits)
+        if limits is not None
+        else rep["product_reading"],
         discriminating_measurement=rep["discriminating_measurement"],
         structure=rep["structure"],
         remaining=rep["remaining"],

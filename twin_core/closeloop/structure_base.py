@@ -239,7 +239,7 @@ def residual_context(
         )
     pred = model.predict(data.inputs)
     sigma = np.maximum(noise_sd(pred, nz), 1e-6)
-    whiten = NoiseWhitener(sigma, nz)
+    whiten = NoiseWhitener(sigma, nz, data.noise_record_n())
     return ResidualContext(data, model, nz, y, finite, tr, ho, pred, sigma, whiten)
 
 

@@ -16,9 +16,9 @@ Three views of the outlet concentration are combined, all in plant time:
 4. **Close-loop findings with the product at risk** (late, from the model check): when the data
    cannot tell a probe-side from a product-side explanation of a window, the twin acts on the
    product-side reading (``schemas.closeloop.ModelFinding.product_reading``): if that reading's
-   outlet leaves the specification over the finding's window, the window is diverted (alert and
-   ``divert`` at once, source ``closeloop``): the NIR's in-spec reading may be the probe's
-   error, not the product's quality.
+   outlet leaves the specification, the stretches it puts out of specification that no divert
+   window covers yet are diverted (alert and ``divert`` at once, source ``closeloop``): the
+   NIR's in-spec reading may be the probe's error, not the product's quality.
 
 Outputs carry stable ids derived from the data (``<line>.<component>.<source>-<start ms>``, with
 ``.open``/``.final`` for commands), so replaying the same data gives the same outputs and a
@@ -29,7 +29,7 @@ time order across the three streams (the service merges them by a watermark).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -160,17 +160,20 @@ class OosDecider:
         t_end: float,
         outlet_min: float,
         outlet_max: float,
+        spans: Sequence[Sequence[float]] | None = None,
     ) -> list[DiverterOutput]:
         """A close-loop finding with the product at risk (module docstring, item 4): its
-        product-side outlet range over [t_start, t_end]; the window is diverted when the range
-        leaves the specification (alert and ``divert``, once per finding window)."""
+        product-side outlet range over [t_start, t_end] and, when the finding names them, the
+        stretches ``spans`` ([first, last] s) it puts out of specification. Each part of those
+        stretches that no divert window covers yet is diverted (alert and ``divert``, once per
+        part): a stretch the twin already diverted (a traced disturbance the reading also
+        shows) is not diverted again, and the rest of the window is kept. Without ``spans``
+        (an older finding) the whole window is diverted when the range leaves the
+        specification."""
         low, high = outlet_min < self.lower, outlet_max > self.upper
         if not (low or high):
             return []
-        aid = episode_id(f"{self.line}.{self.component}.closeloop", t_start)
-        if aid in self._own:
-            return []
-        self._own[aid] = True
+        parts = [(t_start, t_end)] if spans is None else self._uncovered(spans)
         peak = (
             outlet_min
             if low and (self.target - outlet_min >= outlet_max - self.target or not high)
@@ -182,22 +185,47 @@ class OosDecider:
             f"outlet at {outlet_min:.3f}..{outlet_max:.3f} % w/w, outside "
             f"[{self.lower}, {self.upper}]"
         )
-        common = dict(
-            t=t,
-            alert_id=aid,
-            source="closeloop",
-            component=self.component,
-            t_start=t_start,
-            t_end=t_end,
-            peak_deviation=peak - self.target,
-            limit=self.limit,
-            cause=cause,
-        )
-        self._windows.append([t_start, t_end])
-        return [
-            DiverterOutput(kind="alert", id=aid, **common),
-            DiverterOutput(kind="divert", id=f"{aid}.final", **common),
-        ]
+        out: list[DiverterOutput] = []
+        for a, b in parts:
+            aid = episode_id(f"{self.line}.{self.component}.closeloop", a)
+            if aid in self._own:
+                continue
+            self._own[aid] = True
+            common = dict(
+                t=t,
+                alert_id=aid,
+                source="closeloop",
+                component=self.component,
+                t_start=a,
+                t_end=b,
+                peak_deviation=peak - self.target,
+                limit=self.limit,
+                cause=cause,
+            )
+            self._windows.append([a, b])
+            out += [
+                DiverterOutput(kind="alert", id=aid, **common),
+                DiverterOutput(kind="divert", id=f"{aid}.final", **common),
+            ]
+        return out
+
+    def _uncovered(self, spans: Sequence[Sequence[float]]) -> list[tuple[float, float]]:
+        """The parts of ``spans`` ([a, b], s) outside every divert window (one tick of slack,
+        as :meth:`_covered`), each at least a tick long."""
+        parts = [(float(a), float(b)) for a, b in spans]
+        for wa, wb in self._windows:
+            lo, hi = wa - self.dt, wb + self.dt
+            nxt: list[tuple[float, float]] = []
+            for a, b in parts:
+                if b < lo or a > hi:
+                    nxt.append((a, b))
+                    continue
+                if a < lo:
+                    nxt.append((a, lo))
+                if b > hi:
+                    nxt.append((hi, b))
+            parts = nxt
+        return [(a, b) for a, b in parts if b - a >= self.dt]
 
     def flush(self) -> list[DiverterOutput]:
         """End of the streams: close what is open."""

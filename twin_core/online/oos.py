@@ -183,6 +183,7 @@ class OosCore:
             float(reading["t_end_s"]),
             float(reading["outlet_min_pct_w_w"]),
             float(reading["outlet_max_pct_w_w"]),
+            reading.get("out_of_spec_s"),
         )
 
     def adopt_effects(self, effects: Sequence[Effect | Mapping]) -> list[Effect]:

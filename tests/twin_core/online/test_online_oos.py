@@ -251,3 +251,27 @@ def test_the_diverter_follows_the_rtd_the_blender_adopted():
     assert adopted.t_start > declared.t_start + 7.0  # 8 s more plug flow
     np.testing.assert_array_equal(core.deciders["api"].gain, funnel_gain(e, spec.dt_s))
     assert adopted.peak_deviation < declared.peak_deviation  # more back-mixing, lower peak
+
+
+def test_a_product_side_finding_diverts_only_what_it_puts_out_of_spec_and_is_not_yet_diverted():
+    """A finding whose product-side reading is out of specification only where a traced
+    disturbance was already diverted diverts nothing more; a stretch outside every divert
+    window is diverted alone, not the finding's whole window (reference: interval arithmetic
+    on the windows)."""
+    from twin_core.online.diverter import OosDecider
+
+    d = OosDecider("l", "api", 10.0, 8.5, 11.5, 1.0, None, lambda a, b: (a, b))
+    d._windows.append([1814.0, 1889.0])
+    assert d.product_risk(2100.0, "f1", 1050.0, 2100.0, 9.2, 13.9, [[1816.0, 1870.0]]) == []
+    out = d.product_risk(2400.0, "f2", 1200.0, 2400.0, 9.2, 13.9, [[1880.0, 1950.0]])
+    assert [(o.kind, o.t_start, o.t_end) for o in out] == [
+        ("alert", 1890.0, 1950.0),
+        ("divert", 1890.0, 1950.0),
+    ]
+    # an older finding without stretches: its whole window, once
+    out = d.product_risk(3000.0, "f3", 2500.0, 3000.0, 9.2, 12.0, None)
+    assert [(o.kind, o.t_start, o.t_end) for o in out] == [
+        ("alert", 2500.0, 3000.0),
+        ("divert", 2500.0, 3000.0),
+    ]
+    assert d.product_risk(3000.0, "f3", 2500.0, 3000.0, 9.2, 12.0, None) == []
