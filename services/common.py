@@ -474,6 +474,16 @@ def running_twin(spec: LineSpec) -> RunInfo | None:
         return None
 
 
+def running_line(info: RunInfo) -> LineSpec:
+    """The line configuration a running ``twin up`` runs with (``<run dir>/line.json``); a
+    ValueError naming the file when it cannot be read."""
+    path = Path(info.run_dir) / "line.json"
+    try:
+        return LineSpec.from_file(path)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"the running twin's configuration cannot be read, {path}: {exc}") from None
+
+
 def write_pid(run_dir: Path, name: str, pid: int) -> None:
     """``<run_dir>/<name>.pid``: the process of a supervised service."""
     (run_dir / f"{name}.pid").write_text(str(pid))

@@ -872,11 +872,13 @@ def record_bus(
     """Record every valid message on ``key_expr`` to ``path`` until stopped.
 
     Stops on SIGINT/SIGTERM, after ``count`` messages, after ``duration_s`` seconds, or when no
-    message arrived for ``idle_timeout_s`` after the first one; the file is finalized in every
-    case. Messages are validated against their key's model (time order is not checked: a
-    recording keeps what was on the bus); invalid ones are counted and not written. A key
-    without a model is recorded if its payload is a JSON object with a numeric ``t`` >= 0.
-    ``exclude_health``: skip ``twin/<line>/service/...`` keys (health of the services).
+    plant message (any key but the services' own ``twin/<line>/service/...`` keys: health of
+    the services and tools) arrived for ``idle_timeout_s`` after the first one; the file is
+    finalized in every case. Messages are validated against their key's model (time order is
+    not checked: a recording keeps what was on the bus); invalid ones are counted and not
+    written. A key without a model is recorded if its payload is a JSON object with a numeric
+    ``t`` >= 0. The recorder's own health is not recorded; ``exclude_health``: skip every
+    ``twin/<line>/service/...`` key (health of the services).
     """
     from services.service import Service
 
@@ -886,7 +888,8 @@ def record_bus(
     recorder = McapRecorder(path, flush_every=flush_every)
 
     def on_message(key: str, msg: Any, raw: bytes) -> None:
-        if exclude_health and keys_mod.is_service_key(key):
+        service_key = keys_mod.is_service_key(key)
+        if service_key and (exclude_health or key.split("/")[3:4] == [service_name]):
             return
         if isinstance(msg, dict):
             t = msg.get("t")
@@ -905,7 +908,8 @@ def record_bus(
             if state["closed"]:
                 return
             recorder.write(key, raw, float(t))
-            state["last"] = time.monotonic()
+            if not service_key:
+                state["last"] = time.monotonic()
             if count is not None and recorder.total >= count:
                 svc.stop()
 

@@ -2,8 +2,9 @@
 ``twin up`` gives its router.
 
 Identities: every supervised service under its own name (``oos``, ``blender``, ...), ``plant``
-(the virtual plant of ``twin replay --config``, or a bridge of the real line: the one source of
-plant inputs) and ``operator`` (``twin status``, ``twin alerts``, DEM job requests). Each gets a
+(the virtual plant of ``twin replay``, or a bridge of the real line: the one source of
+plant inputs), ``operator`` (``twin status``, ``twin alerts``, the dashboard, DEM job requests)
+and ``record`` (``twin record``: reads everything, publishes only its own health). Each gets a
 random password per run (:class:`RunCredentials`); the router accepts only those users
 (zenoh user/password authentication) and enforces :func:`line_acl`, default deny:
 
@@ -40,7 +41,7 @@ from schemas.bus_config import AccessControl, AclMessage, BusConfig, UserPasswor
 from schemas.line import LineSpec
 
 #: identities of the tools (not supervised services)
-TOOL_IDENTITIES = ("plant", "operator")
+TOOL_IDENTITIES = ("plant", "operator", "record")
 #: environment variables of a session's identity
 USER_ENV = "TWIN_BUS_USER"
 PASSWORD_ENV = "TWIN_BUS_PASSWORD"
@@ -247,16 +248,21 @@ def service_bus(spec: LineSpec) -> BusConfig:
 
 
 def tool_bus(spec: LineSpec, identity: str) -> BusConfig:
-    """The bus of a tool (``twin replay --config``, ``twin status``, ``twin alerts``) talking to
-    the line's twin: as the identity of the environment if it names one; else, when a ``twin
-    up`` of the line runs here with a secured bus, as ``identity`` with its password from the
-    run directory; else without credentials (an open bus, or a twin elsewhere)."""
+    """The bus of a tool (``twin replay``, ``twin record``, ``twin status``, ``twin alerts``, the
+    dashboard) talking to the line's twin: a client of the router of the ``twin up`` of the line
+    running here (its endpoints from the run's lock file, read at each call: a restarted twin
+    may listen elsewhere), else of the line's configured endpoints; as the identity of the
+    environment if it names one; else, with a secured running twin, as ``identity`` with its
+    password from the run directory (a new run has new passwords); else without credentials
+    (an open bus, or a twin elsewhere)."""
     from services.common import running_twin
 
     bus = spec.client_bus()
+    info = running_twin(spec)
+    if info is not None and info.listen:
+        bus = bus.model_copy(update={"connect": list(info.listen)})
     if os.environ.get(USER_ENV):
         return identity_from_env(bus)
-    info = running_twin(spec)
     if info is None or not info.secure:
         return bus
     return as_identity(bus, identity, password_file=Path(info.run_dir) / "credentials" / identity)

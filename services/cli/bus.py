@@ -10,6 +10,7 @@ import logging
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from schemas import keys
 
@@ -72,23 +73,82 @@ def bus_config_from_args(args: argparse.Namespace, **defaults):
     return BusConfig.model_validate(data)
 
 
+def explicit_bus(args: argparse.Namespace) -> bool:
+    """Whether the command line names the bus (``--bus-config``, ``--mode``, ``--listen``,
+    ``--connect``): then it is used as given, nothing is looked up."""
+    return any(getattr(args, n, None) for n in ("bus_config", "mode", "listen", "connect"))
+
+
+def _line_spec(args: argparse.Namespace):
+    from schemas.line import LineSpec
+    from services.cli.live import DEFAULT_CONFIG
+
+    return LineSpec.from_file(args.config or DEFAULT_CONFIG)
+
+
+def record_bus_choice(args: argparse.Namespace) -> tuple[Any, str, str, str]:
+    """The recorder's bus, its name on the bus, the key expression it records (``--keys``, by
+    default every line; of a running twin, its line: the only keys a secured twin lets a tool
+    subscribe to) and a line saying where it records.
+
+    Bus options given: as given (name ``recorder``). Else, when a ``twin up`` of the line
+    (``--config``, default ``line1.yaml``) runs here: a client of its router found through the
+    run's lock file, as the ``record`` identity (its password from the run directory). Else a
+    peer listening on the line's endpoint, for ``twin replay`` to connect to (peer to peer)."""
+    from schemas.bus_config import BusConfig
+    from services.common import running_twin
+    from services.security import tool_bus
+
+    if explicit_bus(args):
+        cfg = bus_config_from_args(args)
+        where = f"on the bus of the options ({', '.join(cfg.connect or cfg.listen)})"
+        return cfg, "recorder", args.keys or keys.ALL_LINES, where
+    spec = _line_spec(args)
+    info = running_twin(spec)
+    if info is not None:
+        cfg = tool_bus(spec, "record")
+        where = f"from the running twin of line {spec.name} (run dir {info.run_dir})"
+        return cfg, "record", args.keys or keys.everything(spec.name), where
+    endpoints = list(spec.client_bus().connect)
+    cfg = BusConfig(mode="peer", listen=endpoints, connect=[], line=spec.name)
+    where = (
+        f"no twin of line {spec.name} runs here: listening on {', '.join(endpoints)} for "
+        "`twin replay` (peer to peer)"
+    )
+    return cfg, "recorder", args.keys or keys.ALL_LINES, where
+
+
 def cmd_record(args: argparse.Namespace) -> int:
+    import zenoh
+
     from services.recording import read_recording, record_bus, summarize
 
     check_output_file(args.out)
-    cfg = bus_config_from_args(args)
-    print(f"recording {args.keys} -> {args.out} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-    stats = record_bus(
-        args.out,
-        cfg,
-        key_expr=args.keys,
-        count=args.count,
-        duration_s=args.duration,
-        idle_timeout_s=args.idle_timeout,
-        flush_every=args.flush_every,
-        exclude_health=args.no_health,
-        on_ready=lambda: print("ready", flush=True),
+    if args.idle_timeout is not None and not args.idle_timeout > 0:
+        raise ValueError(f"--idle-timeout must be a number > 0, got {args.idle_timeout}")
+    cfg, name, key_expr, where = record_bus_choice(args)
+    print(
+        f"recording {key_expr} -> {args.out} {where} (Ctrl-C to stop)", file=sys.stderr, flush=True
     )
+    try:
+        stats = record_bus(
+            args.out,
+            cfg,
+            key_expr=key_expr,
+            count=args.count,
+            duration_s=args.duration,
+            idle_timeout_s=args.idle_timeout,
+            flush_every=args.flush_every,
+            exclude_health=args.no_health,
+            service_name=name,
+            on_ready=lambda: print("ready", flush=True),
+        )
+    except zenoh.ZError:
+        ends = cfg.connect if cfg.mode == "client" else cfg.listen
+        raise RuntimeError(
+            f"cannot record: the bus refused or its endpoint is in use (another program?), "
+            f"bus.{'connect' if cfg.mode == 'client' else 'listen'}: {', '.join(ends)}"
+        ) from None
     print(
         f"recorded {stats.total} messages on {len(stats.counts)} channels in {stats.wall_s:.1f} s "
         f"(stopped by {stats.reason}); rejected: {stats.rejected or 'none'}",
@@ -99,34 +159,79 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def replay_choice(args: argparse.Namespace) -> dict[str, Any]:
+    """The replay's target, as :class:`~services.recording.BusReplay` options.
+
+    ``--config``: the virtual plant of that line's running twin. Bus options: the bus as given.
+    Neither: the running twin of the default line (``line1.yaml``) when one runs here (found
+    through the run's lock file; its own configuration, ``<run dir>/line.json``, as if given
+    with ``--config``); else a client of the line's endpoint, where ``twin record`` listens
+    (peer to peer); a RuntimeError when nobody listens there."""
+    from schemas.line import LineSpec
+    from services.common import running_line, running_twin
+    from services.security import tool_bus
+
+    if args.config or not explicit_bus(args):
+        spec = LineSpec.from_file(args.config) if args.config else _line_spec(args)
+        info = running_twin(spec)
+        if not args.config and info is not None:
+            spec = running_line(info)
+            print(
+                f"twin replay: into the running twin of line {spec.name} (run dir "
+                f"{info.run_dir}) as its plant",
+                file=sys.stderr,
+                flush=True,
+            )
+        cfg = spec.client_bus().model_copy(update={"timestamping": False})
+        hint = (
+            f"no twin of line {spec.name} runs here and nobody (`twin record`) listens on "
+            f"{', '.join(cfg.connect)}; start `twin up` or `twin record` first, or give "
+            "--connect, bus.connect"
+        )
+        if args.config or info is not None:
+            return {
+                "spec": spec,
+                "config": tool_bus(spec, "plant"),
+                "settle_s": 0.5,
+                "service_name": "plant",
+                "allow_mismatch": args.allow_mismatch,
+                "peer_hint": hint if info is None else None,
+            }
+        return {
+            "config": cfg,
+            "settle_s": args.settle,
+            "wait_for_subscribers_s": args.wait_subscribers or 5.0,
+            "peer_hint": hint,
+        }
+    return {
+        "config": bus_config_from_args(args),
+        "settle_s": args.settle,
+        "wait_for_subscribers_s": args.wait_subscribers,
+    }
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
+    import zenoh
+
     from services.recording import read_recording, replay_to_bus
 
     rec = read_recording(args.file)
     rec.require_complete(args.allow_partial)
-    if args.config:
-        from schemas.line import LineSpec
-        from services.security import tool_bus
-
-        spec = LineSpec.from_file(args.config)
-        line = {
-            "spec": spec,
-            "config": tool_bus(spec, "plant"),
-            "settle_s": 0.5,
-            "service_name": "plant",
-            "allow_mismatch": args.allow_mismatch,
-        }
-    else:
-        line = {"config": bus_config_from_args(args), "settle_s": args.settle}
-    stats = replay_to_bus(
-        rec,
-        speed=args.speed,
-        as_fast_as_possible=args.as_fast_as_possible,
-        loop=args.loop,
-        max_passes=args.passes,
-        wait_for_subscribers_s=args.wait_subscribers,
-        **line,
-    )
+    line = replay_choice(args)
+    hint = line.pop("peer_hint", None)
+    try:
+        stats = replay_to_bus(
+            rec,
+            speed=args.speed,
+            as_fast_as_possible=args.as_fast_as_possible,
+            loop=args.loop,
+            max_passes=args.passes,
+            **{"wait_for_subscribers_s": args.wait_subscribers, **line},
+        )
+    except zenoh.ZError:
+        if hint is None:
+            raise
+        raise RuntimeError(hint) from None
     print(
         f"replayed {stats.published} messages ({stats.passes} pass(es), plant span "
         f"{stats.plant_span_s:.1f} s) in {stats.wall_s:.2f} s = {stats.rate_msg_s:.0f} msg/s"
@@ -184,7 +289,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("record", help="record the bus to an MCAP file until stopped")
     p.add_argument("out", type=Path, help="output .mcap")
     p.add_argument(
-        "--keys", default=keys.ALL_LINES, help=f"key expression to record ({keys.ALL_LINES})"
+        "--keys",
+        help=f"key expression to record (default {keys.ALL_LINES}; of a running twin, its line's)",
     )
     p.add_argument("--count", type=int, help="stop after this many messages")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
@@ -200,6 +306,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="write the open chunk every N messages (bounds crash loss; 1000)",
     )
     p.add_argument("--no-health", action="store_true", help="do not record service health")
+    p.add_argument(
+        "--config",
+        type=Path,
+        help="line YAML/JSON whose running twin to record (default line1.yaml; found through "
+        "the run's lock file in its state_dir); no twin running: listen for `twin replay`",
+    )
     p.add_argument(
         "--summary",
         dest="verbose_summary",
