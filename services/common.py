@@ -481,7 +481,9 @@ def running_line(info: RunInfo) -> LineSpec:
     try:
         return LineSpec.from_file(path)
     except (OSError, ValueError) as exc:
-        raise ValueError(f"the running twin's configuration cannot be read, {path}: {exc}") from None
+        raise ValueError(
+            f"the running twin's configuration cannot be read, {path}: {exc}"
+        ) from None
 
 
 def write_pid(run_dir: Path, name: str, pid: int) -> None:
