@@ -67,20 +67,31 @@ def cmd_import(args: argparse.Namespace) -> int:
     from schemas.opcua import BridgeConfig
     from services.cli.bus import check_output_file
     from services.recording import write_messages
-    from twin_core.plant.opcua_import import import_export
+    from twin_core.plant.opcua_import import BadRows, import_export
 
     check_output_file(args.out)
     if not args.export.exists():
         raise FileNotFoundError(2, "No such file or directory", str(args.export))
     config = BridgeConfig.from_file(args.config)
-    messages, report = import_export(
-        args.export, config, time_column=args.time_column, timezone=args.timezone
-    )
+    try:
+        messages, report = import_export(
+            args.export,
+            config,
+            time_column=args.time_column,
+            timezone=args.timezone,
+            skip_bad_rows=args.skip_bad_rows,
+        )
+    except BadRows as exc:  # every bad row named, then the one-line error
+        for b in exc.bad:
+            print(f"bad row: {b.describe()}", file=sys.stderr)
+        raise
     if not messages:
         raise ValueError(f"no message could be built from the export, {args.export}")
     write_messages(args.out, messages)
-    for line in report.lines():
-        print(line, file=sys.stderr if line.startswith(("gap", "dup", "rej")) else sys.stdout)
+    summary, *found = report.lines()
+    print(summary)
+    for line in found:  # bad rows skipped, duplicates, conflicts, gaps, stamps without message
+        print(line, file=sys.stderr)
     print(f"wrote {args.out}", flush=True)
     return 0
 
@@ -115,4 +126,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="output .mcap")
     p.add_argument("--time-column", default="timestamp", help="time column (default timestamp)")
     p.add_argument("--timezone", help="time zone of stamps that carry none, e.g. Europe/Berlin")
+    p.add_argument(
+        "--skip-bad-rows",
+        action="store_true",
+        help="leave out rows with a bad stamp or value (counted and named); "
+        "without it a bad row stops the import (exit 2)",
+    )
     p.set_defaults(func=cmd_import)

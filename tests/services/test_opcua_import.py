@@ -162,3 +162,79 @@ def test_stamps_without_time_zone_need_one(tmp_path, source, capsys):
     assert "time stamps without time zone" in capsys.readouterr().err
     assert main([*args, "--timezone", "Europe/Berlin"]) == 0
     _same(tmp_path / "out.mcap", source)
+
+
+def _api_flows(out: Path) -> dict[float, FeederFlow]:
+    return {
+        m.t: m.decode()
+        for m in read_recording(out).messages
+        if m.key == "twin/line1/feeder/api/flow"
+    }
+
+
+def test_a_blank_or_conflicting_tag_writes_no_message_at_its_stamp(tmp_path, source, capsys):
+    """A blank flow at 5 s and two different screw speeds at 9 s: no ``FeederFlow`` of that
+    feeder at 5 s or 9 s (never the previous second's value), the sequence skips both slots,
+    and each stamp is named with its tag and why."""
+    cfg = _mapping(tmp_path / "bridge.yaml", source)
+    frame = _columns(source).astype(object)
+    frame.loc[5, "api_MassFlow [kg/h]"] = None
+    conflict = frame.iloc[[9]].copy()
+    conflict["api_ScrewSpeed [rpm]"] = 99.0
+    frame = pd.concat([frame, conflict], ignore_index=True)
+    frame.to_csv(tmp_path / "wide.csv", index=False)
+    assert _import(tmp_path / "wide.csv", cfg, tmp_path / "out.mcap") == 0
+    err = capsys.readouterr().err
+    flows = _api_flows(tmp_path / "out.mcap")
+    assert 5.0 not in flows and 9.0 not in flows
+    assert all(m.seq == int(t) for t, m in flows.items())  # each its own 1 Hz slot
+    assert len(flows) == 119
+    assert "no message: feeder api at 5.000 s: api_MassFlow empty" in err
+    assert "no message: feeder api at 9.000 s: api_ScrewSpeed conflicting" in err
+    # the excipient feeder and the NIR at those stamps are whole and written
+    got = [m.decode() for m in read_recording(tmp_path / "out.mcap").messages]
+    assert {m.t for m in got if isinstance(m, MeasuredConcentration)} >= {5.0, 9.0}
+
+
+def _bad_export(tmp_path: Path, source) -> tuple[Path, Path]:
+    """An export with three bad rows: a stamp that is no time (row of 3 s, file line 5), a
+    flow that is text (12 s, line 14) and a negative hopper mass (20 s, line 22)."""
+    cfg = _mapping(tmp_path / "bridge.yaml", source)
+    frame = _columns(source).astype(object)
+    frame.loc[3, "timestamp"] = "yesterday"
+    frame.loc[12, "api_MassFlow [kg/h]"] = "abc"
+    frame.loc[20, "excipient_HopperMass [g]"] = -5.0
+    frame.to_csv(tmp_path / "wide.csv", index=False)
+    return tmp_path / "wide.csv", cfg
+
+
+def test_bad_rows_are_named_by_row_and_tag(tmp_path, source, capsys):
+    """Without ``--skip-bad-rows`` the import stops (exit 2, no file, no traceback), having named
+    every bad row: row, tag, value and reason."""
+    export, cfg = _bad_export(tmp_path, source)
+    assert _import(export, cfg, tmp_path / "out.mcap") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert not (tmp_path / "out.mcap").exists()
+    assert "Traceback" not in "\n".join(err)
+    assert err[-1].startswith("error: 3 bad rows in the export, wide.csv row 5")
+    assert "--skip-bad-rows" in err[-1]
+    named = "\n".join(err[:-1])
+    assert "bad row: wide.csv row 5, 'timestamp': 'yesterday' (not an ISO 8601 stamp)" in named
+    assert "bad row: wide.csv row 14, 'api_MassFlow': 'abc' (rejected_type" in named
+    assert "bad row: wide.csv row 22, 'excipient_HopperMass': '-5.0' (" in named
+
+
+def test_skip_bad_rows_skips_and_counts_them(tmp_path, source, capsys):
+    """With ``--skip-bad-rows`` the bad rows are left out, counted and named; their stamps carry
+    no message."""
+    export, cfg = _bad_export(tmp_path, source)
+    out = tmp_path / "out.mcap"
+    args = ["import", str(export), "--config", str(cfg), "--out", str(out), "--skip-bad-rows"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "skipped 3 bad rows" in err
+    assert "bad row: wide.csv row 14, 'api_MassFlow': 'abc'" in err
+    flows = _api_flows(out)
+    assert {3.0, 12.0, 20.0}.isdisjoint(flows) and len(flows) == 118
+    exc = [m.decode() for m in read_recording(out).messages if "excipient/flow" in m.key]
+    assert 20.0 not in {m.t for m in exc}

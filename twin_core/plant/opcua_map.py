@@ -15,8 +15,9 @@ time, raw value)``).
   one (OPC UA keeps the order of each monitored item's notifications, not across items), in
   time order per unit. A node the mapping declares ``stamped: on_change`` (a PLC stamping it
   only when its value changes) is not waited for: its field takes the node's last value
-  (counted ``incomplete``); a time with a refused value is dropped (``dropped``), never
-  filled in. Feed factor, when not mapped, is its definition
+  (counted ``incomplete``); a time with a refused value is dropped (``dropped``), and so is a
+  time at which a node stamped each sample has no value (``missing``): never filled in with an
+  earlier value. Feed factor, when not mapped, is its definition
   ff = 1000 Q / (60 n) g/rev (Q kg/h, n rev/min; 0 when the screw stands), the seed's Eq. 2.
 - Gaps: a unit's next time more than 1.5 sample periods after its last is a gap of
   round(dt / period) - 1 missed samples: the unit's sequence number skips that many (the
@@ -129,8 +130,9 @@ class _Unit:
 
 class MessageAssembler:
     """Samples ``(node id, plant time, raw)`` in, ``(key, message)`` pairs and gaps out (module
-    docstring). ``counters`` counts ``samples``, ``rejected_*``, ``incomplete``,
-    ``samples_missed``, ``late`` (a time at or before the unit's last emitted one)."""
+    docstring). ``counters`` counts ``samples``, ``rejected_*``, ``incomplete``, ``missing``,
+    ``dropped``, ``samples_missed``, ``late`` (a time at or before the unit's last emitted
+    one)."""
 
     def __init__(self, config: BridgeConfig) -> None:
         self.config = config
@@ -283,13 +285,28 @@ class MessageAssembler:
         gaps: list[Gap] = []
         for t in sorted(x for x in unit.pending if x <= upto):
             values = unit.pending.pop(t)
+            # an on-change node's value stands from its stamp on, whether or not this time
+            # becomes a message
+            unit.last.update(
+                {
+                    f: v
+                    for f, v in values.items()
+                    if v is not _REJECTED and unit.fields[f].stamped == "on_change"
+                }
+            )
             if any(v is _REJECTED for v in values.values()):
                 self._count("dropped")  # a bad value is never replaced by a guess
                 continue
             if len(values) < len(unit.fields):
-                missing = [f for f in unit.fields if f not in values and f not in unit.last]
-                if missing:  # nothing to fill in with: this time is lost
-                    self._count("incomplete")
+                # a node stamped each sample that has no value at this time: the time is lost
+                # (never the node's previous value); an on-change node lends its last value
+                lost = [
+                    f
+                    for f, n in unit.fields.items()
+                    if f not in values and (n.stamped == "every_sample" or f not in unit.last)
+                ]
+                if lost:
+                    self._count("missing")
                     continue
                 self._count("incomplete")
             values = {**unit.last, **values}
