@@ -29,6 +29,7 @@ time order across the three streams (the service merges them by a watermark).
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -98,6 +99,10 @@ class OosDecider:
     _trackers: dict[str, HysteresisTracker] = field(init=False, repr=False)
     _windows: list[list[float]] = field(default_factory=list, repr=False)
     _own: dict[str, bool] = field(default_factory=dict, repr=False)
+    #: inlet ticks that held tracer (plant time, kg of this component), the latest ones
+    _tracer: deque[tuple[float, float]] = field(
+        default_factory=lambda: deque(maxlen=10_000), repr=False
+    )
 
     def __post_init__(self) -> None:
         base = f"{self.line}.{self.component}"
@@ -138,8 +143,11 @@ class OosDecider:
         return min(self.upper - self.target, self.target - self.lower)
 
     # ------------------------------------------------------------------ inputs
-    def inlet(self, t: float, x_pct: float) -> list[DiverterOutput]:
-        """One inlet composition sample (% w/w of this component)."""
+    def inlet(self, t: float, x_pct: float, tracer_kg: float = 0.0) -> list[DiverterOutput]:
+        """One inlet composition sample (% w/w of this component); ``tracer_kg``: the mass of
+        announced tracer of this component in it (an alert then names the tracer pulse)."""
+        if tracer_kg > 0:
+            self._tracer.append((t, tracer_kg))
         if self._flagger is None:
             return []
         return [o for ev in self._flagger.push(t, x_pct) for o in self._from_flag(ev)]
@@ -239,13 +247,31 @@ class OosDecider:
         return out
 
     # ------------------------------------------------------------------ internals
+    def _inlet_cause(self, ev: FlagEvent) -> str:
+        """What went in: a tracer pulse (every sample of the episode held announced tracer),
+        an inlet disturbance of the feeder flows, or both."""
+        ticks = [
+            (t, kg) for t, kg in self._tracer if ev.t_in_start - self.dt < t < ev.t_in_end + self.dt
+        ]
+        peak = f"inlet peak {ev.peak_value:.3f} % w/w over {ev.n_samples} samples"
+        if not ticks:
+            return (
+                f"inlet disturbance of {self.component} (feeder flows) from "
+                f"{ev.t_in_start:.1f} s ({peak})"
+            )
+        pulse = f"{1000 * sum(kg for _, kg in ticks):.4g} g injected at {ticks[0][0]:.1f} s"
+        if ev.n_samples <= len(ticks):
+            return f"tracer pulse of {self.component} ({pulse}; {peak})"
+        return (
+            f"inlet disturbance of {self.component} (feeder flows, with a tracer pulse of "
+            f"{pulse}) from {ev.t_in_start:.1f} s ({peak})"
+        )
+
     def _from_flag(self, ev: FlagEvent) -> list[DiverterOutput]:
         dev = ev.predicted_peak_deviation
         cause = (
-            f"inlet disturbance of {self.component} (feeder flows or tracer) from "
-            f"{ev.t_in_start:.1f} s "
-            f"(peak {ev.peak_value:.3f} % w/w over {ev.n_samples} samples) is outside the "
-            f"funnel's feasible region: predicted outlet deviation {dev:+.3f} % w/w"
+            f"{self._inlet_cause(ev)} is outside the funnel's feasible region: predicted outlet "
+            f"deviation {dev:+.3f} % w/w"
         )
         common = dict(
             t=ev.t,

@@ -226,9 +226,9 @@ class OosCore:
                 self._refresh_funnel()
             self.t_done = t
             if stream == "inlet":
-                t_in, xs = item
+                t_in, xs, tracer_kg = item
                 for comp, x in xs.items():
-                    out += self.deciders[comp].inlet(t_in, x)
+                    out += self.deciders[comp].inlet(t_in, x, tracer_kg.get(comp, 0.0))
             else:
                 comp, c = item
                 d = self.deciders.get(comp)
@@ -282,7 +282,10 @@ class OosCore:
                 c: d.target + 100.0 * (mass.get(c, 0.0) - d.target / 100.0 * total) / self.m_nom
                 for c, d in self.deciders.items()
             }
-            out += self._process(self.merger.push("inlet", tick.t + self.inlet_lead_s, (tick.t, x)))
+            tracer_kg = {c: q * self.spec.dt_s / 3600.0 for c, q in tick.tracer_kg_h.items()}
+            out += self._process(
+                self.merger.push("inlet", tick.t + self.inlet_lead_s, (tick.t, x, tracer_kg))
+            )
         return out
 
     def tracer_pulse(self, component: str, t: float, mass_kg: float, duration_s: float) -> bool:
