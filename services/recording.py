@@ -242,6 +242,8 @@ class LostChunk:
     start_ns: int | None = None
     end_ns: int | None = None
     messages: int | None = None
+    #: messages it held per channel (key), when its message index says
+    per_channel: dict[str, int] | None = None
 
     def describe(self) -> str:
         span = ""
@@ -249,6 +251,100 @@ class LostChunk:
             span = f", plant time {self.start_ns / NS:.1f}-{self.end_ns / NS:.1f} s"
         n = "an unknown number of" if self.messages is None else str(self.messages)
         return f"{n} messages lost at byte {self.offset} ({self.length} bytes{span}: {self.reason})"
+
+
+#: name of the MCAP metadata record in which ``twin recover`` lists the holes of its output
+RECOVERY_METADATA = "recovery"
+
+
+@dataclass
+class Hole:
+    """A stretch of plant time a recording lost (one or more adjacent unreadable chunks).
+
+    ``start_s`` / ``end_s``: the plant time of the lost messages, from the lost chunks' headers
+    (None where no header could be read); ``after_s`` / ``before_s``: the last message read
+    before the hole and the first after it (``before_s`` None: the hole runs to the end of the
+    recording); ``messages``: how many were lost (None: unknown), ``per_channel`` by key when
+    the message indexes say; ``chunks``: the unreadable pieces; ``reason``: why.
+    """
+
+    start_s: float | None
+    end_s: float | None
+    after_s: float | None
+    before_s: float | None
+    messages: int | None
+    chunks: int
+    per_channel: dict[str, int] | None
+    reason: str
+
+    def describe(self) -> str:
+        """One line: ``hole: plant time 999.000-1331.000 s (...): 1000 messages in 1 chunk
+        lost (per channel): reason``."""
+        after = "the start" if self.after_s is None else f"{self.after_s:.3f} s"
+        before = "the end of the recording" if self.before_s is None else f"{self.before_s:.3f} s"
+        if self.start_s is not None and self.end_s is not None:
+            span = f"{self.start_s:.3f}-{self.end_s:.3f} s (after {after}, before {before})"
+        else:
+            span = f"after {after}, before {before}"
+        n = "an unknown number of" if self.messages is None else str(self.messages)
+        chunks = f"{self.chunks} chunk" + ("s" if self.chunks != 1 else "")
+        per = ""
+        if self.per_channel:
+            per = " (" + ", ".join(f"{k} {v}" for k, v in sorted(self.per_channel.items())) + ")"
+        return f"hole: plant time {span}: {n} messages in {chunks} lost{per}: {self.reason}"
+
+    def brief(self) -> str:
+        """The hole in a few words: its plant time and the messages lost."""
+        if self.start_s is not None and self.end_s is not None:
+            span = f"{self.start_s:.3f}-{self.end_s:.3f} s"
+        else:
+            before = "the end" if self.before_s is None else f"{self.before_s:.3f} s"
+            span = f"after {self.after_s or 0.0:.3f} s, before {before}"
+        n = "an unknown number of" if self.messages is None else str(self.messages)
+        return f"plant time {span}, {n} messages lost"
+
+    def as_dict(self) -> dict[str, Any]:
+        """The hole as JSON-ready data."""
+        return asdict(self)
+
+
+def _holes(lost: list[LostChunk], read: list[tuple[int, int, int]]) -> list[Hole]:
+    """The holes of a read: adjacent lost pieces (no chunk read between them, by file offset)
+    merged, each bounded by the chunks read around it (``read``: offset, first and last
+    message time in ns, of every chunk read)."""
+    groups: list[list[LostChunk]] = []
+    for c in sorted(lost, key=lambda c: c.offset):
+        if groups and not any(groups[-1][-1].offset < o < c.offset for o, _, _ in read):
+            groups[-1].append(c)
+        else:
+            groups.append([c])
+    out = []
+    for g in groups:
+        first, last = g[0].offset, g[-1].offset
+        ends = [e for o, _, e in read if o < first]
+        starts = [s for o, s, _ in read if o > last]
+        known = [c for c in g if c.start_ns is not None and c.end_ns is not None]
+        counts = [c.messages for c in g]
+        per: dict[str, int] | None = {}
+        for c in g:
+            if c.per_channel is None or per is None:
+                per = None
+                continue
+            for k, v in c.per_channel.items():
+                per[k] = per.get(k, 0) + v
+        out.append(
+            Hole(
+                start_s=min(c.start_ns for c in known) / NS if len(known) == len(g) else None,
+                end_s=max(c.end_ns for c in known) / NS if len(known) == len(g) else None,
+                after_s=max(ends) / NS if ends else None,
+                before_s=min(starts) / NS if starts else None,
+                messages=None if any(n is None for n in counts) else sum(counts),
+                chunks=len(g),
+                per_channel=per or None,
+                reason="; ".join(dict.fromkeys(c.reason for c in g)),
+            )
+        )
+    return out
 
 
 @dataclass
@@ -273,6 +369,8 @@ class Recording:
     lost: list[LostChunk] = field(default_factory=list)
     expected_messages: int | None = None
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    #: chunks read: (file offset, first and last message time in ns), to bound the holes
+    chunks_read: list[tuple[int, int, int]] = field(default_factory=list)
 
     @property
     def bytes_unread(self) -> int:
@@ -323,10 +421,44 @@ class Recording:
         msgs.sort(key=lambda m: m.log_time_ns)
         return cls(Path("<memory>"), msgs, channels)
 
+    def holes(self) -> list[Hole]:
+        """The holes of this read (:class:`Hole`; none when complete)."""
+        return _holes(self.lost, self.chunks_read)
+
+    @property
+    def recovered_holes(self) -> list[Hole]:
+        """The holes ``twin recover`` wrote into this file's ``recovery`` metadata (the file
+        is a recovered copy of one that lost them)."""
+        text = self.metadata.get(RECOVERY_METADATA, {}).get("holes")
+        return [Hole(**h) for h in json.loads(text)] if text else []
+
+    def recovery_metadata(self) -> dict[str, str]:
+        """The ``recovery`` metadata record of a copy of this recording: its holes, those of
+        an earlier recovery included, and what was read and lost."""
+        holes = [*self.recovered_holes, *self.holes()]
+        holes.sort(key=lambda h: (h.start_s if h.start_s is not None else h.after_s) or 0.0)
+        lost = self.messages_lost
+        return {
+            "source": self.path.name,
+            "messages_written": str(len(self.messages)),
+            "messages_lost": "unknown" if lost is None else str(lost),
+            "holes": json.dumps([h.as_dict() for h in holes]),
+            "source_status": self.loss_report(),
+        }
+
     def loss_report(self) -> str:
-        """One line about completeness, e.g. for ``twin inspect``, replay and the reports."""
+        """One line about completeness, e.g. for ``twin inspect``, replay and the reports; a
+        recovered copy names the holes of the file it was recovered from."""
         if self.complete:
-            return f"complete: {len(self.messages)} messages"
+            holes = self.recovered_holes
+            if not holes:
+                return f"complete: {len(self.messages)} messages"
+            n = len(holes)
+            return (
+                f"complete: {len(self.messages)} messages; a recovered copy with "
+                f"{n} hole{'s' if n != 1 else ''} ({RECOVERY_METADATA!r} metadata): "
+                + "; ".join(h.brief() for h in holes)
+            )
         lost = self.messages_lost
         parts = []
         if self.truncated:
@@ -346,6 +478,7 @@ class Recording:
             "messages_lost": self.messages_lost,
             "truncated": self.truncated,
             "lost": [asdict(c) for c in self.lost],
+            "holes": [h.as_dict() for h in [*self.recovered_holes, *self.holes()]],
             "status": self.loss_report(),
         }
 
@@ -404,6 +537,7 @@ class _Collector:
         self.channels: dict[int, Channel] = {}
         self.messages: list[RecordedMessage] = []
         self.metadata: dict[str, dict[str, str]] = {}
+        self.chunks_read: list[tuple[int, int, int]] = []
 
     def add(self, record: Any) -> None:
         if isinstance(record, Schema):
@@ -417,12 +551,27 @@ class _Collector:
         elif isinstance(record, Metadata):
             self.metadata[record.name] = dict(record.metadata)
 
-    def add_chunk(self, buf: bytes) -> None:
-        """The records of a chunk (CRC validated); raises if it is corrupt."""
+    def add_chunk(self, buf: bytes, offset: int = -1) -> None:
+        """The records of a chunk (CRC validated) at file ``offset``; raises if it is corrupt."""
         chunk = _parse(buf)
         records = breakup_chunk(chunk, validate_crc=True)
         for r in records:
             self.add(r)
+        if any(isinstance(r, McapMessage) for r in records):
+            self.chunks_read.append((offset, chunk.message_start_time, chunk.message_end_time))
+
+    def name_channels(
+        self, lost: list[LostChunk], counts: dict[int, dict[int, int] | None]
+    ) -> None:
+        """Each lost piece's messages per channel key (``counts``: by piece offset, channel
+        id -> messages); a channel whose record was lost too is named by its id."""
+        for c in lost:
+            ids = counts.get(c.offset)
+            if ids is not None:
+                c.per_channel = {
+                    (self.channels[i].topic if i in self.channels else f"channel {i}"): n
+                    for i, n in ids.items()
+                }
 
     def recording(self, path: Path, size: int, **fields: Any) -> Recording:
         infos = {
@@ -433,7 +582,13 @@ class _Collector:
         for m in self.messages:
             infos[m.key].message_count += 1
         return Recording(
-            path, self.messages, infos, bytes_total=size, metadata=self.metadata, **fields
+            path,
+            self.messages,
+            infos,
+            bytes_total=size,
+            metadata=self.metadata,
+            chunks_read=sorted(self.chunks_read),
+            **fields,
         )
 
 
@@ -445,16 +600,24 @@ def _chunk_times(buf: bytes) -> tuple[int | None, int | None]:
     return int.from_bytes(head[:8], "little"), int.from_bytes(head[8:], "little")
 
 
-def _index_count(data: bytes, offsets: Iterable[int]) -> int | None:
-    """Messages listed by the message-index records at ``offsets`` (None if unreadable)."""
-    n = 0
+def _index_counts(data: bytes, offsets: Iterable[int]) -> dict[int, int] | None:
+    """Messages per channel id listed by the message-index records at ``offsets`` (None if
+    unreadable)."""
+    out: dict[int, int] = {}
     for off in offsets:
         try:
             length = int.from_bytes(data[off + 1 : off + _RECORD_HEAD], "little")
-            n += len(_parse(data[off : off + _RECORD_HEAD + length]).records)
+            index = _parse(data[off : off + _RECORD_HEAD + length])
         except Exception:  # noqa: BLE001 - a corrupt index: the count is unknown
             return None
-    return n
+        out[index.channel_id] = out.get(index.channel_id, 0) + len(index.records)
+    return out
+
+
+def _index_count(data: bytes, offsets: Iterable[int]) -> int | None:
+    """Messages listed by the message-index records at ``offsets`` (None if unreadable)."""
+    counts = _index_counts(data, offsets)
+    return None if counts is None else sum(counts.values())
 
 
 def _read_indexed(path: Path, data: bytes) -> Recording | None:
@@ -472,12 +635,15 @@ def _read_indexed(path: Path, data: bytes) -> Recording | None:
     got.schemas.update(summary.schemas)
     got.channels.update(summary.channels)
     lost = []
+    per_channel: dict[int, dict[int, int] | None] = {}
     for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
         buf = data[ci.chunk_start_offset : ci.chunk_start_offset + ci.chunk_length]
         try:
-            got.add_chunk(buf)
+            got.add_chunk(buf, ci.chunk_start_offset)
         except Exception as exc:  # noqa: BLE001 - CRC, zstd, struct errors: skip this chunk
-            n = _index_count(data, ci.message_index_offsets.values())
+            counts = _index_counts(data, ci.message_index_offsets.values())
+            per_channel[ci.chunk_start_offset] = counts
+            n = None if counts is None else sum(counts.values())
             lost.append(
                 LostChunk(
                     ci.chunk_start_offset,
@@ -493,6 +659,7 @@ def _read_indexed(path: Path, data: bytes) -> Recording | None:
             got.add(_parse(data[mi.offset : mi.offset + mi.length]))
         except Exception as exc:  # noqa: BLE001 - lose that metadata record only
             log.warning("%s: metadata %r unreadable: %s", path, mi.name, _error(exc))
+    got.name_channels(lost, per_channel)
     stats = summary.statistics
     expected = stats.message_count if stats is not None else None
     size = len(data)
@@ -524,6 +691,7 @@ def _scan(path: Path, data: bytes) -> Recording:
     lost: list[LostChunk] = []
     size, pos, ended, error = len(data), len(MAGIC), False, None
     last_bad: LostChunk | None = None
+    per_channel: dict[int, dict[int, int] | None] = {}
     while pos < size:
         opcode = data[pos]
         length = int.from_bytes(data[pos + 1 : pos + _RECORD_HEAD], "little")
@@ -542,7 +710,7 @@ def _scan(path: Path, data: bytes) -> Recording:
         buf = data[pos:end]
         if opcode == Opcode.CHUNK:
             try:
-                got.add_chunk(buf)
+                got.add_chunk(buf, pos)
                 last_bad = None
             except Exception as exc:  # noqa: BLE001 - skip the corrupt chunk
                 start, stop = _chunk_times(buf)
@@ -550,11 +718,19 @@ def _scan(path: Path, data: bytes) -> Recording:
                     pos, len(buf), f"corrupt chunk, skipped: {_error(exc)}", start, stop, 0
                 )
                 lost.append(last_bad)
+                per_channel[pos] = {}
         elif opcode == Opcode.MESSAGE_INDEX and last_bad is not None:
-            n = _index_count(data, [pos])
+            counts = _index_counts(data, [pos])
+            n = None if counts is None else sum(counts.values())
             last_bad.messages = (
                 None if n is None or last_bad.messages is None else last_bad.messages + n
             )
+            mine = per_channel.get(last_bad.offset)
+            if counts is None or mine is None:
+                per_channel[last_bad.offset] = None
+            else:
+                for i, k in counts.items():
+                    mine[i] = mine.get(i, 0) + k
         elif opcode in (Opcode.DATA_END, Opcode.FOOTER):
             ended = data.endswith(MAGIC)
             if not ended:
@@ -570,6 +746,8 @@ def _scan(path: Path, data: bytes) -> Recording:
     for c in lost:  # a chunk without a message index after it: its count is unknown
         if c.messages == 0 and c.reason.startswith("corrupt chunk"):
             c.messages = None
+            per_channel.pop(c.offset, None)
+    got.name_channels(lost, per_channel)
     truncated = not ended
     if truncated and error is None:
         error = "no data end, summary or footer"
@@ -626,6 +804,7 @@ def summarize(rec: Recording) -> str:
     lines.append(f"schemas: {', '.join(names)}")
     if rec.metadata:
         lines.append(f"metadata: {', '.join(sorted(rec.metadata))}")
+    lines += [h.describe() for h in [*rec.recovered_holes, *rec.holes()]]
     return "\n".join(lines)
 
 
@@ -1201,11 +1380,16 @@ def replay_to_bus(
 def write_recording(rec: Recording, path: str | Path) -> int:
     """Write what a recording holds (channels with their schemas, messages with their times and
     sequence numbers, metadata) to a new, complete MCAP file (footer, summary, chunk index):
-    ``twin recover``. Returns the messages written."""
+    ``twin recover``. A recording that lost messages (or a recovered copy of one) gets the
+    ``recovery`` metadata record naming every hole (:meth:`Recording.recovery_metadata`), so
+    that the copy's readers see what it lacks. Returns the messages written."""
+    metadata = dict(rec.metadata)
+    if not rec.complete or rec.recovered_holes:
+        metadata[RECOVERY_METADATA] = rec.recovery_metadata()
     with McapRecorder(path, flush_period_s=None, flush_every=10**9) as out:
         for key, c in sorted(rec.channels.items()):
             out.register_channel(key, c.schema_name, c.schema)
-        for name, data in sorted(rec.metadata.items()):
+        for name, data in sorted(metadata.items()):
             out.add_metadata(name, data)
         for m in rec.messages:
             out.write(

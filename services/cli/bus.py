@@ -261,7 +261,12 @@ def cmd_recover(args: argparse.Namespace) -> int:
     if not rec.messages:
         raise ValueError(f"nothing to recover, {args.file}: {rec.loss_report()}")
     n = write_recording(rec, out)
-    print(f"recovered {n} messages to {out} ({rec.loss_report()})", flush=True)
+    holes = [*rec.recovered_holes, *rec.holes()]
+    for h in holes:  # every hole of what was written, also in its 'recovery' metadata
+        print(h.describe(), file=sys.stderr, flush=True)
+    n_holes = f"{len(holes)} hole" + ("s" if len(holes) != 1 else "")
+    named = f"; {n_holes} named in its 'recovery' metadata" if holes else ""
+    print(f"recovered {n} messages to {out}{named} ({rec.loss_report()})", flush=True)
     return 0
 
 
