@@ -37,7 +37,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from schemas.base import Finite, Ident, Positive, StrictModel
+from schemas.base import Finite, Ident, NonNegative, Positive, StrictModel
 
 #: every unit a node may declare: unit -> (quantity, factor to the contract's unit of that
 #: quantity); the contract's units: kg/h, rev/min, kg, g/rev, % w/w, s, and booleans
@@ -253,6 +253,12 @@ class BridgeConfig(StrictModel):
         20.0, description="subscription publishing interval, ms (notifications batched this long)"
     )
     reconnect_s: Positive = Field(1.0, description="wait between reconnection attempts, s")
+    future_tolerance_s: NonNegative = Field(
+        1.0,
+        description="a live sample stamped more than this ahead of the plant clock (the latest "
+        "stamp of the other units, advanced at real time since it was received) is held, and "
+        "refused if its node then reports an earlier stamp (twin_core.plant.opcua_map), s",
+    )
 
     @field_validator("endpoint")
     @classmethod

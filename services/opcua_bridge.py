@@ -23,6 +23,16 @@ access control lets the ``oos`` identity alone publish there, ``services.securit
 command is dropped by the router and never reaches the bridge) and over a signed and encrypted
 OPC UA session; either missing refuses to start unless ``insecure`` (``--insecure``, logged as
 a warning).
+
+Time: each notification is handed over with its receive time; a value stamped ahead of the
+plant clock (the other units' latest stamps, advanced at real time) by more than
+``future_tolerance_s`` is held and refused as soon as its node reports an earlier stamp
+(``future``, ``twin_core.plant.opcua_map``), logged rate-limited (``services.bus.RateLimitedLog``).
+
+Logging: nothing per update at INFO. asyncua logs each publish answer (every notification in
+it) at INFO, 10.8 MB per 30 min of plant time: its loggers are set to WARNING unless the
+process logs at DEBUG (:func:`quiet_opcua_stack`); the bridge logs a summary of its counters
+every :data:`SUMMARY_PERIOD_S` while they change.
 """
 
 from __future__ import annotations
@@ -42,7 +52,7 @@ from schemas import keys
 from schemas.bus_config import BusConfig
 from schemas.messages import DivertCommand
 from schemas.opcua import BridgeConfig
-from services.bus import Counters
+from services.bus import Counters, RateLimitedLog
 from services.service import Service
 from twin_core.plant.opcua_map import Gap, MessageAssembler, gap_event, plant_time_s
 
@@ -59,6 +69,31 @@ LIVENESS_TIMEOUT_S = 10.0
 REQUEST_TIMEOUT_S = 30.0
 #: queue of one monitored item on the server between two publishes
 QUEUE_SIZE = 1000
+#: wall seconds between two summaries of the counters in the log (INFO)
+SUMMARY_PERIOD_S = 60.0
+#: the counters a summary names, in this order
+SUMMARY_COUNTERS = (
+    "samples",
+    "published",
+    "future",
+    "future_held",
+    "late",
+    "dropped",
+    "samples_missed",
+    "rejected_nan",
+    "rejected_type",
+    "rejected_range",
+    "rejected_status",
+    "divert_written",
+    "divert_failed",
+)
+
+
+def quiet_opcua_stack() -> None:
+    """asyncua logs every publish answer, every notification in it, and each server write at
+    INFO: its loggers log WARNING and above unless this process logs at DEBUG (``twin -v``)."""
+    if not logging.getLogger().isEnabledFor(logging.DEBUG):
+        logging.getLogger("asyncua").setLevel(logging.WARNING)
 
 
 def refusal(config: BridgeConfig, bus: BusConfig, insecure: bool) -> str | None:
@@ -112,9 +147,13 @@ class OpcuaBridge:
             raise ValueError(f"refusing to write divert commands, {why} (--insecure writes anyway)")
         if insecure and config.diverter is not None:
             log.warning("bridge: writing divert commands without security (--insecure)")
+        quiet_opcua_stack()
         self.config = config
         self.assembler = MessageAssembler(config)
         self.counters: Counters = self.svc.counters
+        self.warnings = RateLimitedLog(log)
+        self._summary_at = time.monotonic()
+        self._summary_last: dict[str, int] = {}
         self._lock = threading.Lock()
         self._pubs: dict[str, Any] = {}
         self._gap_pub: Any = None
@@ -164,7 +203,7 @@ class OpcuaBridge:
         if self._thread is not None:
             self._thread.join(timeout=10)
         with self._lock:
-            self._emit(*self.assembler.flush())
+            self._account(self.assembler.flush)
         self.svc.close()
 
     def serve(self) -> int:
@@ -209,15 +248,46 @@ class OpcuaBridge:
         )
 
     def sample(self, node_id: str, source: Any, value: Any) -> None:
-        """One OPC UA notification (also the entry point of tests)."""
+        """One OPC UA notification (also the entry point of tests), received now."""
         t = plant_time_s(source, self.config.epoch_utc) if source is not None else float("nan")
         with self._lock:
-            before = dict(self.assembler.counters)
-            out = self.assembler.add(node_id, t, value)
-            for name, n in self.assembler.counters.items():
-                if n > before.get(name, 0):
-                    self.counters.inc(name, n - before.get(name, 0))
-            self._emit(*out)
+            self._account(self.assembler.add, node_id, t, value, time.monotonic())
+
+    def tick(self) -> None:
+        """Time passes: release what the plant clock has reached; a summary when it is due."""
+        with self._lock:
+            self._account(self.assembler.tick, time.monotonic())
+        self._summary()
+
+    def _account(self, step: Any, *args: Any) -> None:
+        """One assembler step: its counters into the service's, its refusals logged, its
+        messages published (under the lock)."""
+        before = dict(self.assembler.counters)
+        out = step(*args)
+        for name, n in self.assembler.counters.items():
+            if n > before.get(name, 0):
+                self.counters.inc(name, n - before.get(name, 0))
+        for f in self.assembler.refused:
+            self.warnings.warn(
+                "future",
+                f"bridge: {f.unit} value of {f.node_id} stamped {f.t_s:.3f} s refused: ahead "
+                f"of the plant clock by more than {self.config.future_tolerance_s:g} s ({f.why})",
+            )
+        self.assembler.refused.clear()
+        self._emit(*out)
+
+    def _summary(self) -> None:
+        """Every :data:`SUMMARY_PERIOD_S`, one INFO line of the counters, if they changed."""
+        now = time.monotonic()
+        if now - self._summary_at < SUMMARY_PERIOD_S:
+            return
+        self._summary_at = now
+        snap = self.counters.snapshot()
+        if snap == self._summary_last:
+            return
+        self._summary_last = snap
+        text = ", ".join(f"{k} {snap[k]}" for k in SUMMARY_COUNTERS if snap.get(k))
+        log.info("bridge: %s (totals)", text or "no samples")
 
     def _on_divert(self, key: str, cmd: DivertCommand) -> None:
         if cmd.command_id in self._written or self._loop is None:
@@ -310,6 +380,7 @@ class OpcuaBridge:
                     await asyncio.wait_for(
                         self._client.nodes.server_state.read_value(), LIVENESS_TIMEOUT_S
                     )
+                    self.tick()
             except ValueError:
                 raise
             except Exception as exc:  # noqa: BLE001 - any failure of the session: reconnect

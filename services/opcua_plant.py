@@ -11,8 +11,16 @@ source timestamp (``epoch + t``), every node of a tick with the same stamp; the 
 bridge writes to the gate node are kept in :attr:`LoopbackPlant.commands`.
 :meth:`LoopbackPlant.bridge_config` is the ``BRIDGE.yaml`` mapping of these nodes.
 
-Security: with ``certificate``/``private_key`` the server offers only Basic256Sha256
-SignAndEncrypt and, with ``users``, accepts only those user/password pairs.
+Security, secure by default: the server offers only Basic256Sha256 SignAndEncrypt and
+accepts only user/password sessions (no anonymous one) of its ``users``. Without
+``certificate``/``private_key`` it makes its own per run (:func:`make_pki`, in ``pki`` or a
+temporary folder removed by :meth:`LoopbackPlant.stop`): a self-signed server certificate, a
+client certificate for the bridge (the only client certificate it then trusts), and, without
+``users``, user ``twin`` with a random password in a 0600 file; :meth:`LoopbackPlant.bridge_config`
+then carries the bridge's side (its certificate, the server's, user and password file).
+``insecure=True`` is the open server: security None, anonymous sessions. Either way clients
+may write only the gate's command node, as a PLC exposes it; the measurement nodes are
+read-only to clients (the plant itself writes them).
 """
 
 from __future__ import annotations
@@ -20,25 +28,33 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import secrets
+import shutil
+import tempfile
 from collections.abc import Iterable
+from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from itertools import groupby
 from pathlib import Path
 from typing import Any
 
 from asyncua import Server, ua
+from asyncua.common.utils import ServiceError
 from asyncua.crypto.permission_rules import SimpleRoleRuleset, User, UserRole
 from asyncua.server.user_managers import UserManager
 
 from schemas import keys
 from schemas.messages import BlenderDrive, Event, FeederFlow, MeasuredConcentration
 from schemas.opcua import BridgeConfig
+from services.security import write_private
 
 log = logging.getLogger(__name__)
 
 #: plant time 0 of the loopback plant's source timestamps
 EPOCH = datetime(2026, 1, 1, tzinfo=UTC)
 NAMESPACE = "urn:powder-twin:loopback-plant"
+#: application URI of the bridge's certificate (asyncua's client default)
+CLIENT_URI = "urn:freeopcua:client"
 #: FeederFlow field -> (node name suffix, unit served)
 FEEDER_NODES = {
     "mass_flow_kg_h": ("MassFlow", "kg/h"),
@@ -68,6 +84,71 @@ class _Users(UserManager):
         return None
 
 
+@dataclass(frozen=True)
+class PlantPki:
+    """The files of a secured loopback plant and of its bridge (:func:`make_pki`)."""
+
+    folder: Path
+    server_certificate: Path
+    server_key: Path
+    client_certificate: Path
+    client_key: Path
+    user: str
+    password_file: Path
+
+    def bridge_security(self) -> dict[str, Any]:
+        """The ``security`` section of the bridge's ``BRIDGE.yaml``."""
+        return {
+            "policy": "Basic256Sha256",
+            "mode": "SignAndEncrypt",
+            "certificate": str(self.client_certificate),
+            "private_key": str(self.client_key),
+            "server_certificate": str(self.server_certificate),
+            "user": self.user,
+            "password_file": str(self.password_file),
+        }
+
+
+def _self_signed(folder: Path, who: str, uri: str, use: Any) -> tuple[Path, Path]:
+    """A self-signed application certificate (DER) and its private key (PEM, 0600)."""
+    from asyncua.crypto.cert_gen import (
+        dump_private_key_as_pem,
+        generate_private_key,
+        generate_self_signed_app_certificate,
+    )
+    from cryptography import x509
+    from cryptography.hazmat.primitives.serialization import Encoding
+
+    key = generate_private_key()
+    cert = generate_self_signed_app_certificate(
+        key,
+        uri,
+        {"organizationName": "powder-twin"},
+        [x509.UniformResourceIdentifier(uri), x509.DNSName("localhost")],
+        extended=[use],
+        days=30,
+    )
+    cert_path, key_path = folder / f"{who}.der", folder / f"{who}.pem"
+    cert_path.write_bytes(cert.public_bytes(Encoding.DER))
+    write_private(key_path, dump_private_key_as_pem(key).decode())
+    return cert_path, key_path
+
+
+def make_pki(folder: Path, user: str = "twin", password: str | None = None) -> PlantPki:
+    """Per-run security of a loopback plant in ``folder`` (made 0700): a server certificate,
+    a client certificate for its bridge, ``user`` and its password (default random) in
+    ``opcua.pw`` (0600)."""
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    folder.chmod(0o700)
+    server = _self_signed(folder, "server", NAMESPACE, ExtendedKeyUsageOID.SERVER_AUTH)
+    client = _self_signed(folder, "client", CLIENT_URI, ExtendedKeyUsageOID.CLIENT_AUTH)
+    pw = folder / "opcua.pw"
+    write_private(pw, password if password is not None else secrets.token_urlsafe(24))
+    return PlantPki(folder, *server, *client, user, pw)
+
+
 def node_id(name: str) -> str:
     """The string node id of a loopback plant variable (namespace 2)."""
     return f"ns=2;s={name}"
@@ -77,7 +158,10 @@ class LoopbackPlant:
     """The recording's plant-input messages served as OPC UA variables (module docstring).
 
     ``messages``: ``(key, message)`` pairs of one line (feeder flows, NIR, tracer events), in
-    time order, e.g. ``Recording.messages`` decoded.
+    time order, e.g. ``Recording.messages`` decoded. Security (module docstring): secured by
+    default, ``insecure=True`` for the open server; ``certificate``/``private_key``, ``users``
+    and ``trusted_clients`` (client certificates accepted, default any) to give one's own,
+    else made per run in ``pki`` (default a temporary folder).
     """
 
     def __init__(
@@ -86,9 +170,12 @@ class LoopbackPlant:
         *,
         port: int,
         speed: float = 200.0,
+        insecure: bool = False,
+        pki: Path | None = None,
         certificate: Path | None = None,
         private_key: Path | None = None,
         users: dict[str, str] | None = None,
+        trusted_clients: list[Path] | None = None,
     ) -> None:
         self.messages = [
             (k, m)
@@ -102,9 +189,16 @@ class LoopbackPlant:
             )
         self.port = port
         self.speed = speed
+        if insecure and (certificate is not None or users is not None):
+            raise ValueError("insecure: the open server takes no certificate and no users")
+        self.insecure = insecure
+        self.pki_folder = pki
+        self.pki: PlantPki | None = None
+        self._temp_pki: Path | None = None
         self.certificate = certificate
         self.private_key = private_key
         self.users = users
+        self.trusted_clients = trusted_clients
         self.endpoint = f"opc.tcp://127.0.0.1:{port}/twin/"
         self.commands: list[dict[str, Any]] = []
         self.line = keys.parse_key(self.messages[0][0]).line
@@ -130,7 +224,8 @@ class LoopbackPlant:
     # -- the mapping ---------------------------------------------------------------------------
     def bridge_config(self, **overrides: Any) -> BridgeConfig:
         """The ``BRIDGE.yaml`` of this plant's nodes (``overrides``: other top-level fields,
-        e.g. ``security``)."""
+        e.g. ``security``); after :meth:`start` of a plant that made its own security, with the
+        bridge's side of it."""
         sid, scomp = self.sensor
         data: dict[str, Any] = {
             "endpoint": self.endpoint,
@@ -164,11 +259,40 @@ class LoopbackPlant:
                 "component": self.tracer,
                 "node": {"node_id": node_id("Tracer.Mass"), "unit": "kg"},
             }
+        if self.pki is not None:
+            data["security"] = self.pki.bridge_security()
         return BridgeConfig.model_validate({**data, **overrides})
+
+    def _secure(self) -> None:
+        """Certificate, key, users and trusted client of a secured plant made per run where
+        not given (module docstring)."""
+        if self.insecure or self.certificate is not None or self.pki is not None:
+            return
+        folder = self.pki_folder
+        if folder is None:
+            folder = self._temp_pki = Path(tempfile.mkdtemp(prefix="twin-opcua-plant-"))
+        user, password = next(iter(self.users.items())) if self.users else ("twin", None)
+        self.pki = make_pki(folder.resolve(), user, password)
+        self.certificate, self.private_key = self.pki.server_certificate, self.pki.server_key
+        if self.trusted_clients is None:
+            self.trusted_clients = [self.pki.client_certificate]
+        if self.users is None:
+            self.users = {user: self.pki.password_file.read_text()}
+
+    async def _check_client(self, certificate: Any, app: Any) -> None:
+        """Only the trusted client certificates open a secure channel."""
+        from cryptography.hazmat.primitives.serialization import Encoding
+
+        if certificate.public_bytes(Encoding.DER) not in self._trusted:
+            log.warning("loopback plant: untrusted client certificate refused (%s)", app)
+            raise ServiceError(ua.StatusCodes.BadSecurityChecksFailed)
 
     # -- the server ------------------------------------------------------------------------------
     async def start(self) -> LoopbackPlant:
         """Create the address space and start serving."""
+        from asyncua.crypto.uacrypto import load_certificate
+
+        self._secure()
         if self.users is not None:
             server = Server(user_manager=_Users(self.users))
         else:
@@ -176,6 +300,9 @@ class LoopbackPlant:
         await server.init()
         server.set_endpoint(self.endpoint)
         server.set_server_name("powder-twin loopback plant")
+        if self.insecure:
+            server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+            server.set_identity_tokens([ua.AnonymousIdentityToken])
         if self.certificate is not None:
             server.set_security_policy(
                 [ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt],
@@ -184,21 +311,27 @@ class LoopbackPlant:
             await server.load_certificate(str(self.certificate))
             await server.load_private_key(str(self.private_key))
         if self.users is not None:
-            server.set_security_IDs(["Username"])
+            server.set_identity_tokens([ua.UserNameIdentityToken])
+        if self.trusted_clients is not None:
+            from cryptography.hazmat.primitives.serialization import Encoding
+
+            certs = [await load_certificate(str(c)) for c in self.trusted_clients]
+            self._trusted = {c.public_bytes(Encoding.DER) for c in certs}
+            server.set_certificate_validator(self._check_client)
         ns = await server.register_namespace(NAMESPACE)
         plc = await server.nodes.objects.add_object(ns, "Line")
         waiting = ua.StatusCode(ua.StatusCodes.BadWaitingForInitialData)
         for nid in self._node_names():
             kind = ua.VariantType.Boolean if nid.endswith("Refilling") else ua.VariantType.Double
             value = False if kind == ua.VariantType.Boolean else 0.0
+            # read-only to clients: the plant writes its measurements (server side)
             var = await plc.add_variable(ua.NodeId(nid, ns), nid, value, varianttype=kind)
-            await var.set_writable()  # a test writes bad values as a faulty PLC would
             await server.write_attribute_value(var.nodeid, ua.DataValue(StatusCode=waiting))
             self.vars[nid] = var
         gate = await plc.add_variable(
             ua.NodeId("Gate.Command", ns), "Gate.Command", "", varianttype=ua.VariantType.String
         )
-        await gate.set_writable()
+        await gate.set_writable()  # the one node a client (the twin's bridge) writes
         self.vars["Gate.Command"] = gate
         await server.start()
         self.server = server
@@ -221,9 +354,13 @@ class LoopbackPlant:
         return names
 
     async def stop(self) -> None:
+        """Stop serving; a temporary folder of per-run security is removed."""
         if self.server is not None:
             await self.server.stop()
             self.server = None
+        if self._temp_pki is not None:
+            shutil.rmtree(self._temp_pki, ignore_errors=True)
+            self._temp_pki = None
 
     async def write(self, name: str, value: Any, t: float) -> None:
         """Write ``value`` to variable ``name`` stamped with plant time ``t`` (``None``: no value,
@@ -279,6 +416,26 @@ class LoopbackPlant:
             if on_tick is not None:
                 on_tick(t, loop.time())
         return ticks
+
+
+def read_users(path: Path) -> dict[str, str]:
+    """``user:password`` lines (``#`` comments and blank lines skipped) of a file readable by
+    its owner only; raises ValueError naming the file and line of a bad one."""
+    mode = path.stat().st_mode & 0o777
+    if mode & 0o077:
+        raise ValueError(f"--users {path} must be readable by its owner only (0600), got {mode:o}")
+    users: dict[str, str] = {}
+    for i, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        user, sep, password = line.partition(":")
+        if not sep or not user or not password:
+            raise ValueError(f"--users {path} line {i}: expected user:password")
+        users[user] = password
+    if not users:
+        raise ValueError(f"--users {path}: no user:password line")
+    return users
 
 
 def recording_messages(path: str | Path) -> list[tuple[str, Any]]:

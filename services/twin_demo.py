@@ -296,7 +296,8 @@ def _feed_recording(
 class _OpcuaFeed:
     """The loopback OPC UA plant serving the recording and ``twin bridge opcua`` feeding the
     twin from it (``services.opcua_plant``, ``services.opcua_bridge``); the bridge writes the
-    diverter's commands back to the plant's gate node (loopback, without OPC UA security)."""
+    diverter's commands back to the plant's gate node over the plant's default security
+    (Basic256Sha256 SignAndEncrypt, per-run certificates and user) and the twin's secured bus."""
 
     def __init__(self, rec: Any, sup: Any, spec: LineSpec, speed: float) -> None:
         import asyncio
@@ -314,7 +315,7 @@ class _OpcuaFeed:
         )
         self.run(self.plant.start())
         self.bridge = OpcuaBridge(
-            self.plant.bridge_config(), sup.client_config("plant"), spec=spec, insecure=True
+            self.plant.bridge_config(), sup.client_config("plant"), spec=spec
         ).__enter__()
         if not self.bridge.connected.wait(30):
             raise RuntimeError(f"the OPC UA bridge did not connect to {self.plant.endpoint}")

@@ -34,21 +34,60 @@ def cmd_bridge(args: argparse.Namespace) -> int:
     return bridge.serve()
 
 
+def _pki_folder(args: argparse.Namespace) -> Path | None:
+    """Where a secured plant keeps its per-run certificates and password: ``--pki``, else
+    beside ``--write-config`` (``BRIDGE.yaml`` -> ``BRIDGE-pki/``), else a temporary folder."""
+    if args.pki is not None:
+        return args.pki
+    if args.write_config is not None:
+        return args.write_config.with_name(f"{args.write_config.stem}-pki")
+    return None
+
+
 def cmd_plant_opcua(args: argparse.Namespace) -> int:
     import yaml
 
     from services.bus import StopFlag
-    from services.opcua_plant import LoopbackPlant, recording_messages
+    from services.opcua_bridge import quiet_opcua_stack
+    from services.opcua_plant import LoopbackPlant, read_users, recording_messages
 
-    plant = LoopbackPlant(recording_messages(args.recording), port=args.port, speed=args.speed)
-    if args.write_config:
-        args.write_config.write_text(
-            yaml.safe_dump(plant.bridge_config().model_dump(mode="json"), sort_keys=False)
-        )
+    if args.insecure and (args.users is not None or args.pki is not None):
+        raise ValueError("--insecure serves without security: --users and --pki do not apply")
+    if not args.recording.exists():
+        raise FileNotFoundError(2, "No such file or directory", str(args.recording))
+    users = read_users(args.users) if args.users is not None else None
+    quiet_opcua_stack()
+    plant = LoopbackPlant(
+        recording_messages(args.recording),
+        port=args.port,
+        speed=args.speed,
+        insecure=args.insecure,
+        pki=None if args.insecure else _pki_folder(args),
+        users=users,
+    )
     stop = StopFlag(install=True)
 
     async def main() -> int:
         await plant.start()
+        if plant.insecure:
+            print(
+                "warning: --insecure: security None, anonymous sessions; anyone reaching "
+                f"{plant.endpoint} may read every node and write the gate's command",
+                file=sys.stderr,
+                flush=True,
+            )
+        else:
+            print(
+                f"security: Basic256Sha256 SignAndEncrypt, users {', '.join(plant.users)}; "
+                f"server certificate {plant.certificate}, trusted client certificate "
+                f"{plant.pki.client_certificate} (made for this run in {plant.pki.folder})",
+                file=sys.stderr,
+                flush=True,
+            )
+        if args.write_config:
+            args.write_config.write_text(
+                yaml.safe_dump(plant.bridge_config().model_dump(mode="json"), sort_keys=False)
+            )
         print(f"serving {args.recording} on {plant.endpoint} at {args.speed:g}x", flush=True)
         try:
             play = asyncio.ensure_future(plant.play())
@@ -115,7 +154,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("recording", type=Path)
     p.add_argument("--port", type=int, default=4840)
     p.add_argument("--speed", type=float, default=1.0, help="plant-time speed-up")
-    p.add_argument("--write-config", type=Path, help="write the BRIDGE.yaml of its nodes here")
+    p.add_argument(
+        "--write-config",
+        type=Path,
+        help="write the BRIDGE.yaml of its nodes (and the bridge's security) here",
+    )
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="serve without security (policy None, anonymous sessions); default: Basic256Sha256 "
+        "SignAndEncrypt with user/password",
+    )
+    p.add_argument(
+        "--users",
+        type=Path,
+        help="user:password lines (a 0600 file); default: user twin with a password made per run",
+    )
+    p.add_argument(
+        "--pki",
+        type=Path,
+        help="folder of the per-run certificates and password (default: beside --write-config, "
+        "else a temporary folder)",
+    )
     p.set_defaults(func=cmd_plant_opcua)
 
     p = subparsers.add_parser(

@@ -83,7 +83,7 @@ async def _untyped_write(plant: LoopbackPlant, name: str, value, t: float) -> No
 
 def test_subscription_reconnect_and_bad_values(loop, messages):
     port = free_port()
-    plant = LoopbackPlant(messages, port=port, speed=200)
+    plant = LoopbackPlant(messages, port=port, speed=200, insecure=True)
     loop(plant.start())
     cfg = plant.bridge_config()
     flow = cfg.feeders[0].nodes["mass_flow_kg_h"]
@@ -117,7 +117,7 @@ def test_subscription_reconnect_and_bad_values(loop, messages):
         # 3. the server killed and started again: reconnect, samples missed counted, gap marked
         loop(plant.stop())
         assert wait_for(lambda: not bridge.connected.is_set(), 20)
-        plant2 = LoopbackPlant(messages, port=port, speed=200)
+        plant2 = LoopbackPlant(messages, port=port, speed=200, insecure=True)
         loop(plant2.start())
         assert bridge.connected.wait(30)
         loop(plant2.play(t_from=400, t_to=420))
@@ -244,7 +244,7 @@ def test_the_bridge_as_a_supervised_service(loop, messages, tmp_path):
 
     from services.supervisor import Supervisor
 
-    plant = LoopbackPlant(messages, port=free_port(), speed=100)
+    plant = LoopbackPlant(messages, port=free_port(), speed=100, insecure=True)
     loop(plant.start())
     bridge_yaml = tmp_path / "bridge.yaml"
     bridge_yaml.write_text(
@@ -285,3 +285,66 @@ def test_the_bridge_as_a_supervised_service(loop, messages, tmp_path):
     finally:
         loop(plant.stop())
     assert sorted(set(got)) == [keys.feeder_flow(LINE, "api"), keys.feeder_flow(LINE, "excipient")]
+
+
+def _oos_outputs(published: list) -> list:
+    """The diverter's decisions (``twin_core.online.oos.OosCore``, measured NIR and the traced
+    feeder flows, no blender) on what the bridge published."""
+    from schemas.messages import FeederFlow, MeasuredConcentration
+    from twin_core.online.oos import OosCore
+
+    spec = LineSpec.from_file(ROOT / "services" / "configs" / "line1_5pct.yaml")
+    core = OosCore(spec.model_copy(update={"services": ["oos"]}))
+    out = []
+    for k, m in sorted(published, key=lambda km: km[1].t):
+        if isinstance(m, FeederFlow):
+            out += core.flow(keys.parse_key(k).id, m.t, m.mass_flow_kg_h, m.refilling)
+        elif isinstance(m, MeasuredConcentration):
+            out += core.measured(m.component, m.t, m.concentration_pct_w_w)
+    return out + core.end_of_stream()
+
+
+def test_values_stamped_in_the_future_are_refused_and_displace_nothing(loop, messages):
+    """Six NIR values three times the upper limit, stamped 340 s ahead of the plant (a forged
+    write, a PLC clock jump): refused and counted (``future``); the real samples after them
+    are all published (none taken for ``late``) and the diverter decides nothing."""
+    plant = LoopbackPlant(messages, port=free_port(), speed=200, insecure=True)
+    loop(plant.start())
+    cfg = plant.bridge_config()
+    sid = cfg.sensor.id
+    nir = keys.measured_concentration(LINE, sid)
+    published = []
+    with OpcuaBridge(cfg, _peer_bus(), insecure=True) as bridge:
+        bridge.on_publish = lambda k, m: published.append((k, m))
+        assert bridge.connected.wait(20)
+        loop(plant.play(t_to=60))
+        assert wait_for(lambda: any(k == nir and m.t == 60 for k, m in published), 20)
+        for i in range(6):
+            loop(plant.write(f"{sid}.Concentration", 17.25, 400.0 + i))
+        loop(plant.play(t_from=61, t_to=80))
+        assert wait_for(lambda: any(k == nir and m.t == 80 for k, m in published), 20)
+        assert wait_for(lambda: bridge.counters.get("future") == 6, 10)
+        assert bridge.health()["future"] == 6  # in the health report (twin status)
+        assert bridge.counters.get("late") == 0
+    got = sorted(m.t for k, m in published if k == nir)
+    assert got == [float(t) for t in range(0, 81)]
+    assert not [o for o in _oos_outputs(published) if o.kind == "alert"]
+    loop(plant.stop())
+
+
+def test_the_log_of_a_bridged_run_is_bounded(loop, messages, caplog):
+    """300 s of plant time through the bridge (13 node updates a second): a handful of INFO
+    lines, not one per OPC UA update or publish (asyncua's per-publish lines are DEBUG)."""
+    import logging
+
+    caplog.set_level(logging.INFO)
+    plant = LoopbackPlant(messages, port=free_port(), speed=200, insecure=True)
+    loop(plant.start())
+    with OpcuaBridge(plant.bridge_config(), _peer_bus(), insecure=True) as bridge:
+        assert bridge.connected.wait(20)
+        loop(plant.play(t_to=300))
+        assert wait_for(lambda: bridge.counters.get("published") >= 904, 20)
+    loop(plant.stop())
+    lines = [r for r in caplog.records if r.levelno >= logging.INFO]
+    text = sum(len(r.getMessage()) for r in lines)
+    assert len(lines) <= 20 and text <= 4000, (len(lines), text)

@@ -24,6 +24,21 @@ time, raw value)``).
   close-loop's data-quality step reads a stamp gap with a sequence gap as missing data,
   ``twin_core.closeloop.quality``) and a :class:`Gap` is returned for the bridge to mark on
   the bus (:func:`gap_event`).
+- Time at the plant boundary (live samples, ``received_s`` given): the *plant clock* of a unit
+  at the bridge's receive time w is the latest stamp any **other** unit reported (accepted, or
+  held as below), advanced at real time since it was received: C_U(w) = max over V != U of
+  t_V + (w - w_V). A sample stamped more than ``future_tolerance_s`` ahead of it is **held**,
+  not assembled, and released in stamp order once the clock reaches it (notifications grouped
+  by node in one publish, a source's clock a little fast; the whole plant jumping ahead
+  together, after an outage, is followed: the units support each other; before any other
+  unit reported there is no clock). It is **refused** (``future``, listed in
+  :attr:`MessageAssembler.refused`) as soon as its node reports an earlier or equal stamp (one
+  node's notifications come in order: the later one with the earlier stamp is the PLC's, the
+  held one was out of time), when more than :data:`HOLD_MAX` are held for its unit, or at
+  :meth:`MessageAssembler.flush`.
+  A held sample never sets its unit's last time, so the real samples after a forged or
+  clock-jumped one are not taken for ``late``. An export (``twin import``) has no live clock:
+  without ``received_s`` nothing is held.
 """
 
 from __future__ import annotations
@@ -40,6 +55,7 @@ from schemas.opcua import UNITS, BridgeConfig, NodeMap
 
 __all__ = [
     "BadValue",
+    "Future",
     "Gap",
     "MessageAssembler",
     "convert",
@@ -51,6 +67,8 @@ __all__ = [
 _REJECTED = object()
 #: a stamp gap longer than this many sample periods is missing data (the close-loop's rule)
 GAP_PERIODS = 1.5
+#: live samples held ahead of the plant clock per unit; beyond, the one furthest ahead is refused
+HOLD_MAX = 1000
 
 
 class BadValue(ValueError):
@@ -112,6 +130,26 @@ def gap_event(gap: Gap, seq: int) -> Event:
     )
 
 
+@dataclass(frozen=True)
+class Future:
+    """A live sample refused for its stamp ahead of the plant clock (module docstring)."""
+
+    unit: str
+    node_id: str
+    t_s: float
+    why: str
+
+
+@dataclass(frozen=True)
+class _Held:
+    """A live sample held ahead of the plant clock: stamp, field, raw value, receive time."""
+
+    t: float
+    name: str
+    raw: Any
+    received_s: float
+
+
 @dataclass
 class _Unit:
     """One message source: its key, its fields' nodes, its pending times and state."""
@@ -126,17 +164,32 @@ class _Unit:
     last_t: float | None = None
     seq: int = 0
     node_t: dict[str, float] = field(default_factory=dict)
+    #: the latest stamp past the time checks and its receive time (the others' plant clock)
+    clock_t: float | None = None
+    clock_w: float = 0.0
+    held: list[_Held] = field(default_factory=list)
+
+    def seen(self, now: float) -> float | None:
+        """This unit's latest stamp (accepted or held), advanced at real time to ``now``."""
+        points = [(h.t, h.received_s) for h in self.held]
+        if self.clock_t is not None:
+            points.append((self.clock_t, self.clock_w))
+        return max((t + (now - w) for t, w in points), default=None)
 
 
 class MessageAssembler:
     """Samples ``(node id, plant time, raw)`` in, ``(key, message)`` pairs and gaps out (module
     docstring). ``counters`` counts ``samples``, ``rejected_*``, ``incomplete``, ``missing``,
     ``dropped``, ``samples_missed``, ``late`` (a time at or before the unit's last emitted
-    one)."""
+    one), ``future`` (a live sample refused ahead of the plant clock), ``future_held`` (held
+    ahead of it, then released); :attr:`refused` lists the ``future`` ones until the caller
+    takes them."""
 
     def __init__(self, config: BridgeConfig) -> None:
         self.config = config
+        self.tolerance_s = config.future_tolerance_s
         self.counters: dict[str, int] = {}
+        self.refused: list[Future] = []
         self.units: list[_Unit] = []
         self._by_node: dict[str, tuple[_Unit, str]] = {}
         line = config.line
@@ -249,9 +302,13 @@ class MessageAssembler:
         """The nodes the assembler takes samples of."""
         return list(self._by_node)
 
-    def add(self, node_id: str, t: float, raw: Any) -> tuple[list[tuple[str, Message]], list[Gap]]:
+    def add(
+        self, node_id: str, t: float, raw: Any, received_s: float | None = None
+    ) -> tuple[list[tuple[str, Message]], list[Gap]]:
         """One sample: the messages and gaps it releases (module docstring). A bad value is
-        counted by reason; its time is dropped (a missed sample, seen as a gap)."""
+        counted by reason; its time is dropped (a missed sample, seen as a gap).
+        ``received_s``: a live sample's receive time (seconds of any steady clock, e.g.
+        ``time.monotonic()``), checked against the plant clock; None (an export): not."""
         if node_id not in self._by_node:
             self._count("rejected_unknown")
             return [], []
@@ -260,9 +317,68 @@ class MessageAssembler:
         if not math.isfinite(t) or t < 0:
             self._count("rejected_time")
             return [], []
+        if received_s is None:
+            return self._take(unit, name, t, raw, None)
+        out, gaps = self.tick(received_s)
+        # one node's notifications come in its order: its held samples stamped at or after
+        # this one were out of time
+        for h in [h for h in unit.held if h.name == name and h.t >= t]:
+            unit.held.remove(h)
+            self._refuse(unit, h, f"its node then reported {t:.3f} s")
+        clock = self._clock(unit, received_s)
+        if clock is not None and t > clock + self.tolerance_s:
+            unit.held.append(_Held(t, name, raw, received_s))
+            if len(unit.held) > HOLD_MAX:
+                far = max(unit.held, key=lambda h: h.t)
+                unit.held.remove(far)
+                self._refuse(unit, far, f"more than {HOLD_MAX} samples held")
+            return out, gaps
+        m, g = self._take(unit, name, t, raw, received_s)
+        m2, g2 = self.tick(received_s)
+        return out + m + m2, gaps + g + g2
+
+    def _clock(self, unit: _Unit, now: float) -> float | None:
+        """The plant clock of ``unit`` at ``now`` (module docstring); None before any other
+        unit reported."""
+        return max(
+            (s for u in self.units if u is not unit if (s := u.seen(now)) is not None), default=None
+        )
+
+    def _refuse(self, unit: _Unit, h: _Held, why: str) -> None:
+        self._count("future")
+        self.refused.append(Future(unit.name, unit.fields[h.name].node_id, h.t, why))
+
+    def tick(self, now: float) -> tuple[list[tuple[str, Message]], list[Gap]]:
+        """Release, in stamp order per unit, the held samples the plant clock has reached by
+        ``now`` (also called as time passes without samples)."""
+        out: list[tuple[str, Message]] = []
+        gaps: list[Gap] = []
+        moved = True
+        while moved:
+            moved = False
+            for unit in self.units:
+                if not unit.held:
+                    continue
+                clock = self._clock(unit, now)
+                limit = math.inf if clock is None else clock + self.tolerance_s
+                for h in sorted((h for h in unit.held if h.t <= limit), key=lambda h: h.t):
+                    unit.held.remove(h)
+                    self._count("future_held")
+                    m, g = self._take(unit, h.name, h.t, h.raw, h.received_s)
+                    out += m
+                    gaps += g
+                    moved = True
+        return out, gaps
+
+    def _take(
+        self, unit: _Unit, name: str, t: float, raw: Any, received_s: float | None
+    ) -> tuple[list[tuple[str, Message]], list[Gap]]:
+        """A sample past the time checks, into its unit's pending times."""
         if unit.last_t is not None and t <= unit.last_t:
             self._count("late")
             return [], []
+        if received_s is not None and (unit.clock_t is None or t >= unit.clock_t):
+            unit.clock_t, unit.clock_w = t, received_s
         try:
             value = convert(unit.fields[name], raw)
         except BadValue as exc:
@@ -334,10 +450,14 @@ class MessageAssembler:
         return Gap(unit.name, unit.key, unit.last_t, t, n)
 
     def flush(self) -> tuple[list[tuple[str, Message]], list[Gap]]:
-        """Release every pending time (end of an export, a bridge stopping)."""
+        """Release every pending time (end of an export, a bridge stopping); live samples
+        still held ahead of the plant clock are refused."""
         out: list[tuple[str, Message]] = []
         gaps: list[Gap] = []
         for unit in self.units:
+            for h in unit.held:
+                self._refuse(unit, h, "still ahead of the plant clock at the end")
+            unit.held.clear()
             if unit.pending:
                 m, g = self._release(unit, max(unit.pending))
                 out += m

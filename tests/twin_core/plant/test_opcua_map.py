@@ -203,3 +203,61 @@ def test_the_close_loop_reads_a_bridge_gap_as_missing_data():
     assert [(f.kind, f.t_start_s, f.t_end_s, f.n_samples) for f in flags] == [
         ("gap", 10.0, 19.0, 10)
     ]
+
+
+def _live(a: MessageAssembler, node: str, t: float, raw, w: float) -> list:
+    """A live sample received at wall time ``w``: the messages it releases."""
+    return [m for _, m in a.add(node, t, raw, w)[0]]
+
+
+def _tick(a: MessageAssembler, t: float, w: float) -> list:
+    """One feeder tick (three nodes) and one NIR sample stamped ``t``, received at ``w``."""
+    out = []
+    for node, raw in (("q", 0.2), ("n", 0.5), ("m", 40.0)):
+        out += _live(a, node, t, raw, w)
+    return out + _live(a, "c", t, 0.05, w)
+
+
+def test_a_value_stamped_ahead_of_the_plant_clock_is_refused_and_displaces_nothing():
+    """The plant clock of the NIR is the feeder's latest stamp advanced at real time: a value
+    stamped 340 s ahead (beyond ``future_tolerance_s``) is held, then refused (``future``)
+    when the NIR reports the next real stamp, which is published (not ``late``)."""
+    a = MessageAssembler(_config())
+    assert a.tolerance_s == 1.0  # the default
+    for t in range(5):
+        _tick(a, float(t), w=100.0 + t)
+    assert _live(a, "c", 400.0, 0.9, w=104.5) == []  # held, not published
+    assert a.counters.get("future", 0) == 0
+    out = _tick(a, 5.0, w=105.0)
+    assert a.counters["future"] == 1 and a.counters.get("late", 0) == 0
+    assert [f.t_s for f in a.refused] == [400.0] and "reported 5.000 s" in a.refused[0].why
+    nir = [m for m in out if isinstance(m, MeasuredConcentration)]
+    assert [(m.t, m.concentration_pct_w_w) for m in nir] == [(5.0, pytest.approx(5.0))]
+    # within the tolerance, or once real time has brought the clock there: taken
+    assert _live(a, "c", 5.5, 0.05, w=105.1)
+    held = _live(a, "c", 9.0, 0.05, w=105.2)  # 3.5 s ahead: held...
+    assert held == [] and a.tick(108.0)[0]  # ... and released when the clock gets there
+    assert a.counters["future_held"] == 1 and a.counters["future"] == 1
+
+
+def test_the_whole_plant_stepping_ahead_together_is_followed():
+    """After an outage every unit comes back 300 s on: each supports the others' clock, so
+    nothing is refused, whichever unit reports first; the gap is counted as before."""
+    a = MessageAssembler(_config())
+    for t in range(3):
+        _tick(a, float(t), w=float(t))
+    out = _live(a, "c", 300.0, 0.05, w=3.0)  # the NIR first: ahead of the feeder, held
+    assert out == []
+    for node, raw in (("q", 0.2), ("n", 0.5), ("m", 40.0)):  # the feeder: the NIR's held
+        out += _live(a, node, 300.0, raw, w=3.1)  # stamp supports it, and it the NIR's
+    assert a.counters.get("future", 0) == 0
+    assert sorted(type(m).__name__ for m in out) == ["FeederFlow", "MeasuredConcentration"]
+    assert a.counters["samples_missed"] == 2 * 297
+
+
+def test_an_export_has_no_live_clock():
+    """Without a receive time (``twin import``) nothing is held: a stamp far ahead is taken."""
+    a = MessageAssembler(_config())
+    a.add("q", 0.0, 0.2)
+    assert a.add("c", 5000.0, 0.05)[0]
+    assert a.counters.get("future", 0) == 0
