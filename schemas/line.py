@@ -338,9 +338,12 @@ class CloseLoopSettings(StrictModel):
     spends the same share of it: its claim test runs at level
     ``false_claims_per_day * interval_s / 86400`` (a constant-rate alpha-spending rule, Lan &
     DeMets 1983, Biometrika 70:659; by Bonferroni's inequality the daily bound holds whatever
-    the dependence of overlapping windows), capped at 0.05 (``twin_core.closeloop.online.claim_alpha``). ``noise_span_s``: the plant time
-    over which the probe's 1/f noise has its declared standard deviation; a window is a
-    segment of that process, so its slow wander is noise, not a sensor offset or gain.
+    the dependence of overlapping windows), capped at 0.05
+    (``twin_core.closeloop.online.claim_alpha``). ``noise_span_s``: the plant time over which
+    the probe's 1/f noise has its declared standard deviation; a window is a segment of that
+    process, so its slow wander is noise, not a sensor offset or gain (4 h by default: taken
+    as the window itself, a 600 s window of a 1 h record claimed a sensor gain at z 5.3;
+    taken as a day, the innovation tests of 30 min records reject their own noise).
     """
 
     interval_s: Positive = 300.0
@@ -350,7 +353,7 @@ class CloseLoopSettings(StrictModel):
     candidates: list[Ident] = Field(default_factory=list)
     max_effects: int = Field(1, ge=1, le=2)
     false_claims_per_day: float = Field(0.05, gt=0.0, lt=1.0)
-    noise_span_s: Positive = 86400.0
+    noise_span_s: Positive = 14400.0
 
     @model_validator(mode="after")
     def _windows(self) -> CloseLoopSettings:

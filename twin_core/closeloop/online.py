@@ -117,7 +117,7 @@ class OnlineCloseLoop:
         max_effects: int = 1,
         effects: Sequence[Mapping[str, Any]] = (),
         false_claims_per_day: float = 0.05,
-        noise_span_s: float = DAY_S,
+        noise_span_s: float = 14400.0,
         limits: tuple[float, float] | None = None,
     ) -> None:
         if dt_s <= 0:
