@@ -228,14 +228,32 @@ def _figure(path: Path, tap: _Tap, spec: LineSpec, reference: dict[float, float]
 REFERENCE_LABEL = "predicted (Table 6.2 axial dispersion)"
 
 
-def reference_prediction(rec: Any, spec: LineSpec) -> dict[float, float]:
-    """What the twin predicts for the sensor's component with the seed's Table 6.2 axial
-    dispersion blender (``BlenderModelConfig`` defaults) from the recording's feeder flows and
-    tracer events (:func:`stream_prediction`)."""
+def reference_spec(spec: LineSpec) -> LineSpec:
+    """``spec`` with the seed's Table 6.2 axial dispersion blender (``BlenderModelConfig``
+    defaults, the same kernel length)."""
     from schemas.line import BlenderModelConfig
 
-    ad = spec.model_copy(update={"blender": BlenderModelConfig(kernel_s=spec.blender.kernel_s)})
-    return stream_prediction(rec, ad)
+    return spec.model_copy(update={"blender": BlenderModelConfig(kernel_s=spec.blender.kernel_s)})
+
+
+def reference_prediction(rec: Any, spec: LineSpec) -> dict[float, float]:
+    """What the twin predicts for the sensor's component with the seed's Table 6.2 axial
+    dispersion blender (:func:`reference_spec`) from the recording's feeder flows and tracer
+    events (:func:`stream_prediction`)."""
+    return stream_prediction(rec, reference_spec(spec))
+
+
+def tracer_injections(rec: Any) -> list[float]:
+    """Plant times of the tracer pulses a recording's events announce."""
+    from twin_core.online.inlet import event_record, tracer_pulse
+
+    out = []
+    for m in rec.messages:
+        if keys.parse_key(m.key).signal == "event":
+            p = tracer_pulse(event_record(Event.model_validate_json(m.payload)))
+            if p is not None:
+                out.append(p.t_s)
+    return sorted(out)
 
 
 def stream_prediction(rec: Any, spec: LineSpec) -> dict[float, float]:
@@ -433,16 +451,152 @@ def failures(health: dict[str, dict]) -> list[str]:
     return lines
 
 
+def _shape(e: np.ndarray, dt: float) -> dict[str, float]:
+    """Mean residence time, standard deviation, mode and t(F = 0.995) of an E(t) on the tick
+    grid, s."""
+    from twin_core.rtd.profiles import moments
+
+    t = np.arange(e.size) * dt
+    m = moments(t, e)
+    f = np.cumsum(e) / np.sum(e)
+    return {
+        "mean_s": float(m.mean),
+        "sd_s": float(np.sqrt(m.variance)),
+        "mode_s": float(t[int(np.argmax(e))]),
+        "t995_s": float(t[min(int(np.searchsorted(f, 0.995)), t.size - 1)]),
+    }
+
+
+def _rmse(err: np.ndarray) -> float | None:
+    return float(np.sqrt(np.mean(err**2))) if err.size else None
+
+
+def blender_comparison(
+    measured: dict[float, float],
+    live: dict[float, float],
+    reference: dict[float, float],
+    pulses: list[float],
+    e_live: np.ndarray,
+    e_ref: np.ndarray,
+    dt: float,
+    live_label: str = "compartment model",
+) -> dict[str, Any]:
+    """Where and why the live blender's error differs from the Table 6.2 model's, from the run:
+    the RMSE of each inside the tracer pulses' passage (from each injection to the later
+    t(F = 0.995) of the two E(t)) and outside it, the share of the live model's extra squared
+    error that lies inside, the two E(t)'s mean residence time, spread and mode, and each
+    pulse's peak delay in the NIR and in each prediction; ``text`` says it in two sentences."""
+    shapes = {"live": _shape(e_live, dt), "reference": _shape(e_ref, dt)}
+    width = max(s["t995_s"] for s in shapes.values()) + dt
+    t = np.array(sorted(set(measured) & set(live) & set(reference)))
+    y = np.array([measured[x] for x in t])
+    a = np.array([live[x] for x in t])
+    b = np.array([reference[x] for x in t])
+    inside = np.zeros(t.size, bool)
+    for p in pulses:
+        inside |= (t >= p) & (t <= p + width)
+    extra = (y - a) ** 2 - (y - b) ** 2
+    share = float(extra[inside].sum() / extra.sum()) if extra.sum() > 0 else None
+    delays: dict[str, list[float]] = {"measured": [], "live": [], "reference": []}
+    for p in pulses:
+        w = (t >= p) & (t <= p + width)
+        if w.any():
+            for name, z in (("measured", y), ("live", a), ("reference", b)):
+                delays[name].append(float(t[w][int(np.argmax(z[w]))] - p))
+    out: dict[str, Any] = {
+        "pulses": len(pulses),
+        "pulse_window_s": width,
+        "samples_in_pulses": int(inside.sum()),
+        "samples": int(t.size),
+        "rmse_in_pulses": {"live": _rmse((y - a)[inside]), "reference": _rmse((y - b)[inside])},
+        "rmse_outside": {"live": _rmse((y - a)[~inside]), "reference": _rmse((y - b)[~inside])},
+        "excess_share_in_pulses": share,
+        "e_t": shapes,
+        "peak_delay_s": delays,
+    }
+    out["text"] = _comparison_text(out, live_label)
+    return out
+
+
+def _comparison_text(c: dict[str, Any], live_label: str) -> str:
+    """Two sentences from :func:`blender_comparison`'s numbers: where the live model's extra
+    error lies, and how its E(t) differs from Table 6.2's."""
+    sentences = []
+    share, ins, outs = c["excess_share_in_pulses"], c["rmse_in_pulses"], c["rmse_outside"]
+    if c["pulses"] and share is not None and ins["live"] is not None:
+        where = (
+            f"{share:.1%} of the {live_label}'s extra squared error lies in the "
+            f"{c['pulses']} tracer pulses' passage ({c['pulse_window_s']:.0f} s after each "
+            f"injection, {c['samples_in_pulses'] / c['samples']:.0%} of the samples): there its "
+            f"RMSE is {ins['live']:.3f} against {ins['reference']:.3f} % w/w"
+        )
+        if outs["live"] is not None:
+            where += f", elsewhere {outs['live']:.3f} against {outs['reference']:.3f}"
+        sentences.append(where[0].upper() + where[1:])
+    lv, rf = c["e_t"]["live"], c["e_t"]["reference"]
+    dm = lv["mean_s"] - rf["mean_s"]
+    same = abs(dm) <= 0.05 * rf["mean_s"]
+    mrt = (
+        "the same mean residence time as Table 6.2's"
+        if same
+        else f"a {'longer' if dm > 0 else 'shorter'} mean residence time than Table 6.2's"
+    )
+    spread = "narrower" if lv["sd_s"] < rf["sd_s"] else "wider"
+    peak = (
+        "a later peak"
+        if lv["mode_s"] > rf["mode_s"]
+        else "an earlier peak"
+        if lv["mode_s"] < rf["mode_s"]
+        else "the same peak"
+    )
+    shape = (
+        f"Its E(t) has {mrt} ({lv['mean_s']:.1f} vs {rf['mean_s']:.1f} s) "
+        f"{'but' if same else 'and'} is {spread} with {peak} (sd {lv['sd_s']:.1f} vs "
+        f"{rf['sd_s']:.1f} s, mode {lv['mode_s']:.0f} vs {rf['mode_s']:.0f} s)"
+    )
+    d = c["peak_delay_s"]
+    if d["measured"]:
+
+        def secs(xs: list[float]) -> str:
+            return ", ".join(f"{x:.0f}" for x in xs) + " s"
+
+        shape += (
+            f": the NIR saw the pulses peak {secs(d['measured'])} after injection, the "
+            f"{live_label} predicted {secs(d['live'])}, Table 6.2 {secs(d['reference'])}"
+        )
+    sentences.append(shape)
+    return ". ".join(sentences) + "."
+
+
+#: what each close-loop status of a window means (docs/closeloop.md), one line each
+STATUS_MEANING = {
+    "consistent": "the declared model's residual is the NIR's declared noise: nothing is "
+    "missing from the model in this window",
+    "explained": "an effect was found and, added to the model, leaves only the noise on the "
+    "held-out data: the model lacked that effect",
+    "partly_explained": "an effect was found but, added to the model, still leaves more than "
+    "the noise on the held-out data (the finding's `remaining` says what): reported, not adopted",
+    "unexplained": "the residual is more than the noise, yet no candidate effect passes the "
+    "claim test: the twin does not know what the model lacks and claims nothing",
+    "data_quality": "data faults (stuck, clipped, spiky, missing or mis-stamped samples) were "
+    "flagged and left out, and the rest is the noise: no process effect is claimed",
+}
+
+
 def _error_text(err: dict) -> str:
     return f"bias {err['bias']:+.3f}, RMSE {err['rmse']:.3f} % w/w" if err["n"] else "n/a"
 
 
 def _model_lines(report: dict[str, Any]) -> list[str]:
-    """The reference prediction's error and the blender models the twin used."""
+    """The reference prediction's error, why it differs from the live one, and the blender
+    models the twin used."""
     lines = []
     ref = report.get("reference_prediction_error_pct_w_w")
     if ref is not None and report.get("blender_model") != "rtd":
         lines.append(f"- the same with the seed's Table 6.2 axial dispersion: {_error_text(ref)}")
+        comparison = report.get("blender_comparison")
+        if comparison:
+            lines.append(f"  - why they differ: {comparison['text']}")
     for m in report.get("models_in_use", []):
         lines.append(
             f"- blender model from {m['applies_from_s']:.0f} s ({m['reason']}): {m['name']}, "
@@ -465,7 +619,7 @@ def report_markdown(report: dict[str, Any]) -> str:
         + _error_text(err)
         + f" ({report.get('blender_model', 'rtd')} blender, live)",
         *_model_lines(report),
-        f"- OOS alerts: {len(report['alerts'])}; divert commands: "
+        f"- OOS alerts: {len(report['alerts'])}{_tracer_alerts(report['alerts'])}; divert commands: "
         f"{len(report['divert_commands'])}; RTD estimates: {len(report['rtd_estimates'])} "
         f"(pulses without one: {len(report['rtd_skipped'])}); "
         f"duplicates seen: {report['duplicates_seen']}",
@@ -509,7 +663,18 @@ def report_markdown(report: dict[str, Any]) -> str:
             f"| {f['t_start_s']:.0f} - {f['t_end_s']:.0f} | {f['status']} | {eff or '-'} | "
             f"{rmse[0]:.3f} -> {rmse[1]:.3f} |"
         )
+    if report["model_findings"]:
+        lines += ["", "What a window's status means:"]
+        for status, meaning in STATUS_MEANING.items():
+            n = sum(f["status"] == status for f in report["model_findings"])
+            lines.append(f"- `{status}` ({n} window{'' if n == 1 else 's'}): {meaning}")
     return "\n".join([*lines, "", "![outlet](outlet.png)", ""])
+
+
+def _tracer_alerts(alerts: list[dict[str, Any]]) -> str:
+    """`` (n tracer pulses)`` when alerts are the passage of announced tracer pulses."""
+    n = sum(a["cause"].startswith("tracer pulse") for a in alerts)
+    return f" ({n} tracer pulse{'' if n == 1 else 's'})" if n else ""
 
 
 def run_full_twin_demo(
@@ -535,6 +700,20 @@ def run_full_twin_demo(
     timings: dict[str, float] = {}
     tap, n_sent, health, codes, run_dir, written = _run_twin(rec, spec, speed, echo, timings, opcua)
     reference = reference_prediction(rec, spec)
+    comparison = None
+    if spec.blender.kind != "rtd":
+        from twin_core.online.blender import declared_kernel
+
+        comparison = blender_comparison(
+            tap.meas,
+            tap.pred,
+            reference,
+            tracer_injections(rec),
+            declared_kernel(spec),
+            declared_kernel(reference_spec(spec)),
+            spec.dt_s,
+            f"{spec.blender.kind} model",
+        )
     timings["total_s"] = time.perf_counter() - t0
     span = rec.duration_s
     report = {
@@ -553,6 +732,7 @@ def run_full_twin_demo(
         "models_in_use": [m.model_dump(mode="json") for _, m in sorted(tap.models_in_use.items())],
         "prediction_error_pct_w_w": prediction_error(tap.meas, tap.pred),
         "reference_prediction_error_pct_w_w": prediction_error(tap.meas, reference),
+        "blender_comparison": comparison,
         "alerts": [
             a.model_dump(mode="json")
             for a in sorted(tap.alerts.values(), key=lambda a: a.t_start_s)

@@ -153,3 +153,14 @@ def test_twin_demo_cli(tmp_path):
     assert report["reference_prediction_error_pct_w_w"]["n"] > 1000
     assert [m["reason"] for m in report["models_in_use"]][0] == "start"
     assert (tmp_path / "demo" / "outlet.png").stat().st_size > 10_000
+    # in the words of the plant: the alerts are the tracer pulses, named as such; each status of
+    # the close-loop's windows is explained; the two blenders' errors with why they differ
+    md = (tmp_path / "demo" / "report.md").read_text()
+    assert all(a["cause"].startswith("tracer pulse of api (") for a in report["alerts"])
+    assert "inlet disturbance" not in md
+    assert f"OOS alerts: {len(report['alerts'])} ({len(report['alerts'])} tracer pulses)" in md
+    for status in {f["status"] for f in report["model_findings"]}:
+        assert f"- `{status}` (" in md
+    why = report["blender_comparison"]
+    assert why["pulses"] == 3 and why["excess_share_in_pulses"] > 0.5
+    assert "mean residence time" in why["text"] and f"why they differ: {why['text']}" in md
