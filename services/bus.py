@@ -32,6 +32,7 @@ import math
 import os
 import signal
 import socket
+import sys
 import threading
 import time
 from collections import deque
@@ -612,29 +613,41 @@ def collect_health(
 class AlertFeed:
     """Every OOS alert of a line, and with ``divert`` every divert command, once each (history
     included, ``HistoryFeed``) to ``emit(key, message)``; :attr:`done` is set after ``count``
-    alerts (0: never)."""
+    alerts (0: never). :meth:`attach` moves the feed to another session (a tool reconnected to
+    a restarted twin, :class:`TwinLink`): the new session's history is fetched and what was
+    already emitted (by alert or command id) is not emitted again."""
 
     def __init__(
         self,
-        session: zenoh.Session,
+        session: zenoh.Session | None,
         line: str,
         emit: Callable[[str, Any], None],
         *,
         divert: bool = False,
         count: int = 0,
     ) -> None:
-        from schemas.messages import DivertCommand, OosAlert
-
         self._emit = emit
         self._count = count
-        self._seen: set[str] = set()
+        self._line = line
+        self._divert = divert
+        self._seen: set[tuple[str, str]] = set()
         self._lock = threading.Lock()
         self.alerts = 0
         self.done = threading.Event()
-        self._feeds = [HistoryFeed(session, keys_mod.oos_alert(line), self._on(OosAlert, True))]
-        if divert:
-            key = keys_mod.divert_command(line)
-            self._feeds.append(HistoryFeed(session, key, self._on(DivertCommand, False)))
+        self._feeds: list[HistoryFeed] = []
+        if session is not None:
+            self.attach(session)
+
+    def attach(self, session: zenoh.Session) -> None:
+        """Follow the alerts (and divert commands) on ``session``, history included."""
+        from schemas.messages import DivertCommand, OosAlert
+
+        self.undeclare()
+        feeds = [HistoryFeed(session, keys_mod.oos_alert(self._line), self._on(OosAlert, True))]
+        if self._divert:
+            key = keys_mod.divert_command(self._line)
+            feeds.append(HistoryFeed(session, key, self._on(DivertCommand, False)))
+        self._feeds = feeds
 
     def _on(self, model: type[Message], is_alert: bool) -> Callable[[str, bytes], None]:
         def cb(key: str, payload: bytes) -> None:
@@ -657,8 +670,151 @@ class AlertFeed:
         return cb
 
     def undeclare(self) -> None:
-        for f in self._feeds:
-            f.undeclare()
+        feeds, self._feeds = self._feeds, []
+        for f in feeds:
+            try:
+                f.undeclare()
+            except zenoh.ZError as exc:  # a session already closed
+                log.debug("undeclare: %s", exc)
+
+
+class TwinLink:
+    """A tool's link to the running twin of a line that survives restarts of the twin
+    (``twin alerts``, ``twin record``, the dashboard).
+
+    ``connect(config, again)`` opens the tool's session on ``config``, declares its
+    subscriptions and returns the session and what closes it; ``again`` is true on a
+    reconnection: fetch what was missed from the publishers' history (:class:`HistoryFeed`).
+    ``config`` is ``services.security.tool_bus(spec, identity)``, read again at each connection:
+    a new run of the twin has its own endpoints and credentials, found through the run's lock
+    file. The link watches the twin: the supervisor's liveliness token
+    (``twin/<line>/service/supervisor/alive``) and the run's lock file
+    (``services.common.running_twin``). When the token goes, the lock is released or another
+    run holds it, it says so at once in one line (``say``, stderr by default), closes the
+    session and connects again as soon as a twin of the line answers, saying so too.
+    """
+
+    def __init__(
+        self,
+        spec: Any,
+        identity: str,
+        connect: Callable[[BusConfig, bool], tuple[zenoh.Session, Callable[[], None]]],
+        *,
+        name: str,
+        say: Callable[[str], None] | None = None,
+        poll_s: float = 0.5,
+    ) -> None:
+        self.spec = spec
+        self.identity = identity
+        self.name = name
+        self.poll_s = poll_s
+        self._connect_cb = connect
+        self._say = say or (lambda text: print(text, file=sys.stderr, flush=True))
+        self.session: zenoh.Session | None = None
+        self._close: Callable[[], None] | None = None
+        self._watch: Any = None
+        #: run directory of the twin connected to (None: no lock file here, a twin elsewhere)
+        self.run: str | None = None
+        self.reconnects = 0
+        self.lost = 0
+        self._gone = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _config(self) -> tuple[BusConfig, str | None]:
+        from services.common import running_twin
+        from services.security import tool_bus
+
+        info = running_twin(self.spec)
+        return tool_bus(self.spec, self.identity), (info.run_dir if info else None)
+
+    def _open(self, again: bool) -> None:
+        config, run = self._config()
+        session, close = self._connect_cb(config, again)
+        try:
+            self._gone.clear()
+            self._watch = session.liveliness().declare_subscriber(
+                keys_mod.service_alive(self.spec.name, "supervisor"),
+                zenoh.handlers.Callback(self._on_token, lambda: None),
+            )
+        except BaseException:
+            close()
+            raise
+        self.session, self._close, self.run = session, close, run
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self._gone.set()
+
+    def open(self) -> TwinLink:
+        """Connect (a RuntimeError naming the endpoints when no twin answers) and start
+        watching the twin."""
+        try:
+            self._open(again=False)
+        except zenoh.ZError:
+            raise RuntimeError(
+                f"no twin of line {self.spec.name} answers (is `twin up` running?), bus.connect: "
+                f"{', '.join(self._config()[0].connect)}"
+            ) from None
+        self._thread = threading.Thread(target=self._run, name=f"{self.name}-link", daemon=True)
+        self._thread.start()
+        return self
+
+    def _disconnect(self) -> None:
+        close, self._close, self.session = self._close, None, None
+        if self._watch is not None:
+            try:
+                self._watch.undeclare()
+            except zenoh.ZError as exc:
+                log.debug("undeclare: %s", exc)
+            self._watch = None
+        if close is not None:
+            close()
+
+    def _lost_why(self, run: str | None) -> str | None:
+        if self._gone.is_set():
+            return "the supervisor's liveliness token is gone"
+        if self.run is not None and run != self.run:
+            return "its run ended" if run is None else f"another run holds the line: {run}"
+        return None
+
+    def _run(self) -> None:
+        from services.common import running_twin
+
+        line = self.spec.name
+        while not self._stop.wait(self.poll_s):
+            info = running_twin(self.spec)
+            run = info.run_dir if info else None
+            if self.session is not None:
+                why = self._lost_why(run)
+                if why is not None:
+                    self.lost += 1
+                    self._say(
+                        f"{self.name}: lost the twin of line {line} ({why}); reconnecting when "
+                        "it is back"
+                    )
+                    self._disconnect()
+                continue
+            if self.run is not None and run is None:
+                continue  # the twin of this directory is down: wait for its lock
+            try:
+                self._open(again=True)
+            except (zenoh.ZError, ValueError, OSError) as exc:
+                log.debug("%s: reconnection failed: %s", self.name, exc)
+                continue
+            self.reconnects += 1
+            where = f"run dir {self.run}" if self.run else ", ".join(self._config()[0].connect)
+            self._say(
+                f"{self.name}: reconnected to the twin of line {line} ({where}); what was "
+                "missed comes from its history"
+            )
+
+    def close(self) -> None:
+        """Stop watching and close the session."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self._disconnect()
 
 
 @dataclass

@@ -35,7 +35,7 @@ from typing import Any
 from schemas import keys
 from schemas.line import LineSpec
 from schemas.messages import DivertCommand, OosAlert
-from services.bus import AlertFeed, TypedSubscriber
+from services.bus import AlertFeed, Counters, TypedSubscriber
 from services.recording import Recording, replay
 from twin_core.online.dashboard_state import DashboardState, DashboardView, PlotFeed, Window
 
@@ -78,6 +78,7 @@ class DashboardHub:
         self._queue: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._view: tuple[int, DashboardView] | None = None
         self.source = "bus"
+        self._source_changed = False
         self._wake: dict[str, Callable[[], None]] = {}
         self._wake_lock = threading.Lock()
         self.finished = threading.Event()
@@ -102,8 +103,17 @@ class DashboardHub:
             else:
                 self._wake[page_id] = wake
 
+    def set_source(self, text: str) -> None:
+        """Say where the data comes from (any thread): shown in each page's header at its next
+        refresh, e.g. that the twin was lost."""
+        self.source = text
+        self._source_changed = True
+
     def drain(self) -> int:
         """Move every queued message into the state (the server's thread); how many."""
+        if self._source_changed:
+            self._source_changed = False
+            self.state.version += 1  # redraw the header
         n = 0
         while True:
             try:
@@ -127,27 +137,44 @@ class DashboardHub:
 class BusFeed:
     """Every message of the line on the bus to the hub: one typed subscriber on the line's keys
     (invalid ones counted and dropped, as a service does) and, for alerts and divert commands,
-    the diverter's history as well (a page opened late shows the alerts raised before)."""
+    the diverter's history as well (a page opened late shows the alerts raised before).
+    :meth:`attach` moves it to another session (the twin restarted, ``services.bus.TwinLink``):
+    a fresh time order per key (the new run's plant time starts over) and the alerts the page
+    missed from the new run's history, each alert once."""
 
     def __init__(self, session: Any, hub: DashboardHub) -> None:
-        line = hub.spec.name
+        self._hub = hub
+        self.counters = Counters()
+        self._sub: TypedSubscriber | None = None
+        self._alerts = AlertFeed(None, hub.spec.name, hub.put, divert=True)
+        hub.bus_counters = self.counters.snapshot
+        if session is not None:
+            self.attach(session)
+
+    def attach(self, session: Any) -> None:
+        """Follow the line on ``session``."""
+        self.undeclare()
         self._sub = TypedSubscriber(
             session,
-            keys.everything(line),
+            keys.everything(self._hub.spec.name),
             self._on_message,
             allow_unknown=False,
             name="dashboard",
+            counters=self.counters,
         )
-        self._alerts = AlertFeed(session, line, hub.put, divert=True)
-        self._hub = hub
-        hub.bus_counters = self._sub.counters.snapshot
+        self._alerts.attach(session)
 
     def _on_message(self, key: str, msg: Any) -> None:
         if not isinstance(msg, OosAlert | DivertCommand):  # these come through the AlertFeed
             self._hub.put(key, msg)
 
     def undeclare(self) -> None:
-        self._sub.undeclare()
+        sub, self._sub = self._sub, None
+        if sub is not None:
+            try:
+                sub.undeclare()
+            except Exception as exc:  # noqa: BLE001 - a session already closed
+                log.debug("undeclare: %s", exc)
         self._alerts.undeclare()
 
 

@@ -1047,6 +1047,8 @@ def record_bus(
     install_signal_handlers: bool = True,
     on_ready: Callable[[], None] | None = None,
     exclude_health: bool = False,
+    twin: Any = None,
+    say: Callable[[str], None] | None = None,
 ) -> RecordStats:
     """Record every valid message on ``key_expr`` to ``path`` until stopped.
 
@@ -1058,15 +1060,30 @@ def record_bus(
     written. A key without a model is recorded if its payload is a JSON object with a numeric
     ``t`` >= 0. The recorder's own health is not recorded; ``exclude_health``: skip every
     ``twin/<line>/service/...`` key (health of the services).
+
+    ``twin``: the :class:`~schemas.line.LineSpec` of the running twin to record, followed
+    across its restarts (``services.bus.TwinLink`` as the ``record`` identity; ``config`` is
+    not used): when the twin goes away the recorder says so (``say``), and when it is back it
+    connects with the new run's credentials and fetches what it missed from the publishers'
+    history; a message recorded already (its key, ``t`` and ``seq`` seen again in the same
+    run) is counted in ``duplicates`` and not written again.
     """
+    from services.bus import MessageValidator, StopFlag, StreamOrder, TwinLink
     from services.service import Service
 
-    svc = Service(service_name, config, install_signal_handlers=install_signal_handlers)
+    stop = StopFlag(install=install_signal_handlers)
     lock = threading.Lock()
-    state = {"closed": False, "last": None}
+    recent = max(4096, int(getattr(twin, "history_samples", 0)) + 1024)
+    state: dict[str, Any] = {
+        "closed": False,
+        "last": None,
+        "order": StreamOrder(recent),
+        "run": None,
+    }
     recorder = McapRecorder(path, flush_every=flush_every)
+    services: list[Any] = []
 
-    def on_message(key: str, msg: Any, raw: bytes) -> None:
+    def on_message(key: str, msg: Any, raw: bytes, svc: Any) -> None:
         service_key = keys_mod.is_service_key(key)
         if service_key and (exclude_health or key.split("/")[3:4] == [service_name]):
             return
@@ -1081,25 +1098,81 @@ def record_bus(
                 svc.counters.inc("rejected_schema")
                 svc.counters.last_error = f"{key}: unknown-model payload without a valid 't'"
                 return
+            seq = msg.get("seq", 0)
         else:
-            t = msg.t
+            t, seq = msg.t, msg.seq
         with lock:
             if state["closed"]:
+                return
+            if twin is not None and state["order"].check(key, float(t), int(seq)) == "duplicate":
+                svc.counters.inc("duplicates")
                 return
             recorder.write(key, raw, float(t))
             if not service_key:
                 state["last"] = time.monotonic()
             if count is not None and recorder.total >= count:
-                svc.stop()
+                stop.set()
+
+    def connect(cfg: Any, again: bool) -> tuple[Any, Callable[[], None]]:
+        """A session recording on ``cfg``; ``again``: a reconnection, history included."""
+        from services.bus import HistoryFeed
+
+        svc = Service(service_name, cfg, install_signal_handlers=False)
+        svc.open()
+        if not again:
+            svc.subscribe(
+                key_expr,
+                lambda k, m, raw: on_message(k, m, raw, svc),
+                check_time=False,
+                allow_unknown=True,
+                with_payload=True,
+            )
+        else:
+            from services.common import running_twin
+
+            info = running_twin(twin)
+            run = info.run_dir if info else None
+            with lock:
+                if run != state["run"]:  # a new run: its plant session starts over
+                    state["order"] = StreamOrder(recent)
+                state["run"] = run
+            check = MessageValidator(
+                svc.counters, check_time=False, allow_unknown=True, name=service_name
+            )
+
+            def on_payload(key: str, payload: bytes) -> None:
+                svc.key_counts.inc(key)
+                msg = check.check(key, payload)
+                if msg is not None:
+                    svc.counters.inc("received")
+                    on_message(key, msg, payload, svc)
+
+            feed = HistoryFeed(svc.session, key_expr, on_payload)
+
+            def close() -> None:
+                feed.undeclare()
+                svc.close()
+
+            services.append(svc)
+            return svc.session, close
+        services.append(svc)
+        return svc.session, svc.close
 
     t0 = time.monotonic()
     reason = "signal"
+    link = None
     try:
-        svc.open()
-        svc.subscribe(key_expr, on_message, check_time=False, allow_unknown=True, with_payload=True)
+        if twin is not None:
+            from services.common import running_twin
+
+            info = running_twin(twin)
+            state["run"] = info.run_dir if info else None
+            link = TwinLink(twin, "record", connect, name="twin record", say=say).open()
+        else:
+            connect(config, False)
         if on_ready is not None:
             on_ready()
-        while not svc.stop_flag.wait(0.05):
+        while not stop.wait(0.05):
             now = time.monotonic()
             if duration_s is not None and now - t0 >= duration_s:
                 reason = "duration"
@@ -1112,12 +1185,19 @@ def record_bus(
             if count is not None and recorder.total >= count:
                 reason = "count"
     finally:
-        svc.close()
+        if link is not None:
+            link.close()
+        elif services:
+            services[-1].close()
+        stop.restore()
         with lock:
             state["closed"] = True
             recorder.close()
-    snap = svc.counters.snapshot()
-    rejected = {k: v for k, v in snap.items() if k.startswith("rejected")}
+    rejected: dict[str, int] = {}
+    for svc in services:
+        for k, v in svc.counters.snapshot().items():
+            if k.startswith("rejected"):
+                rejected[k] = rejected.get(k, 0) + v
     return RecordStats(Path(path), dict(recorder.counts), rejected, time.monotonic() - t0, reason)
 
 

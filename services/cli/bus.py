@@ -86,10 +86,11 @@ def _line_spec(args: argparse.Namespace):
     return LineSpec.from_file(args.config or DEFAULT_CONFIG)
 
 
-def record_bus_choice(args: argparse.Namespace) -> tuple[Any, str, str, str]:
+def record_bus_choice(args: argparse.Namespace) -> tuple[Any, str, str, str, Any]:
     """The recorder's bus, its name on the bus, the key expression it records (``--keys``, by
     default every line; of a running twin, its line: the only keys a secured twin lets a tool
-    subscribe to) and a line saying where it records.
+    subscribe to), a line saying where it records and the line of the running twin it follows
+    across restarts (None: not a twin's).
 
     Bus options given: as given (name ``recorder``). Else, when a ``twin up`` of the line
     (``--config``, default ``line1.yaml``) runs here: a client of its router found through the
@@ -102,20 +103,20 @@ def record_bus_choice(args: argparse.Namespace) -> tuple[Any, str, str, str]:
     if explicit_bus(args):
         cfg = bus_config_from_args(args)
         where = f"on the bus of the options ({', '.join(cfg.connect or cfg.listen)})"
-        return cfg, "recorder", args.keys or keys.ALL_LINES, where
+        return cfg, "recorder", args.keys or keys.ALL_LINES, where, None
     spec = _line_spec(args)
     info = running_twin(spec)
     if info is not None:
         cfg = tool_bus(spec, "record")
         where = f"from the running twin of line {spec.name} (run dir {info.run_dir})"
-        return cfg, "record", args.keys or keys.everything(spec.name), where
+        return cfg, "record", args.keys or keys.everything(spec.name), where, spec
     endpoints = list(spec.client_bus().connect)
     cfg = BusConfig(mode="peer", listen=endpoints, connect=[], line=spec.name)
     where = (
         f"no twin of line {spec.name} runs here: listening on {', '.join(endpoints)} for "
         "`twin replay` (peer to peer)"
     )
-    return cfg, "recorder", args.keys or keys.ALL_LINES, where
+    return cfg, "recorder", args.keys or keys.ALL_LINES, where, None
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -126,7 +127,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     check_output_file(args.out)
     if args.idle_timeout is not None and not args.idle_timeout > 0:
         raise ValueError(f"--idle-timeout must be a number > 0, got {args.idle_timeout}")
-    cfg, name, key_expr, where = record_bus_choice(args)
+    cfg, name, key_expr, where, twin = record_bus_choice(args)
     print(
         f"recording {key_expr} -> {args.out} {where} (Ctrl-C to stop)", file=sys.stderr, flush=True
     )
@@ -142,6 +143,7 @@ def cmd_record(args: argparse.Namespace) -> int:
             exclude_health=args.no_health,
             service_name=name,
             on_ready=lambda: print("ready", flush=True),
+            twin=twin,
         )
     except zenoh.ZError:
         ends = cfg.connect if cfg.mode == "client" else cfg.listen

@@ -57,7 +57,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     spec = LineSpec.from_file(args.config or DEFAULT_CONFIG)
     hub = DashboardHub(spec, max_points=args.max_points)
     stopping = False
-    session = feed = None
+    link = None
     if args.recording:
         from services.recording import read_recording, recording_mismatches
 
@@ -70,10 +70,28 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
                 f"(--allow-mismatch shows it anyway), {'; '.join(str(x) for x in found)}"
             )
     else:
-        from services.cli.live import _tool_session
+        from services.bus import TwinLink, open_session
 
-        session = _tool_session(spec)
-        feed = BusFeed(session, hub)
+        feed = BusFeed(None, hub)
+        live = f"live bus {', '.join(spec.client_bus().connect)}"
+
+        def connect(config: Any, again: bool) -> tuple[Any, Any]:  # noqa: ARG001
+            bus = open_session(config)
+            feed.attach(bus)
+            hub.set_source(f"live bus {', '.join(config.connect)}")
+
+            def close() -> None:
+                feed.undeclare()
+                bus.close()
+
+            return bus, close
+
+        def say(text: str) -> None:
+            print(text, file=sys.stderr, flush=True)
+            if "lost the twin" in text:
+                hub.set_source(f"{live}: LOST THE TWIN, waiting for it (the data shown is old)")
+
+        link = TwinLink(spec, "operator", connect, name="twin dashboard", say=say).open()
     server = make_server(
         hub,
         address=args.address,
@@ -84,8 +102,6 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     server.start()
     if args.recording:
         start_recording_feed(rec, hub, args.speed, lambda: stopping)
-    else:
-        hub.source = f"live bus {', '.join(spec.client_bus().connect)}"
     if not is_loopback(args.address):
         print(
             f"twin dashboard: warning: serving on {args.address}: whoever reaches it sees the "
@@ -103,10 +119,8 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     finally:
         stopping = True
         server.stop()
-        if feed is not None:
-            feed.undeclare()
-        if session is not None:
-            session.close()
+        if link is not None:
+            link.close()
     return 0
 
 

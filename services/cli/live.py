@@ -115,7 +115,10 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_alerts(args: argparse.Namespace) -> int:
-    from services.bus import AlertFeed
+    """Print the line's alerts as they come, each once, across restarts of the twin
+    (``services.bus.TwinLink``: it says on stderr when it loses the twin and when it is back,
+    and fetches what it missed from the new run's history)."""
+    from services.bus import AlertFeed, TwinLink, open_session
     from services.common import format_alert
 
     spec = _spec(args)
@@ -126,13 +129,26 @@ def cmd_alerts(args: argparse.Namespace) -> int:
         else:
             print(format_alert(msg), flush=True)
 
-    with _tool_session(spec) as s:
-        feed = AlertFeed(s, spec.name, emit, divert=args.divert, count=args.count)
+    feed = AlertFeed(None, spec.name, emit, divert=args.divert, count=args.count)
+
+    def connect(config: Any, again: bool) -> tuple[Any, Any]:  # noqa: ARG001 - always history
+        session = open_session(config)
+        feed.attach(session)
+
+        def close() -> None:
+            feed.undeclare()
+            session.close()
+
+        return session, close
+
+    link = TwinLink(spec, "operator", connect, name="twin alerts").open()
+    try:
         if args.timeout or args.count:
             feed.done.wait(args.timeout or None)
         else:
             _wait_for_signal()
-        feed.undeclare()
+    finally:
+        link.close()
     return 0
 
 
