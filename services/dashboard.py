@@ -178,29 +178,89 @@ class BusFeed:
         self._alerts.undeclare()
 
 
+def recorded_decisions(rec: Recording, spec: LineSpec) -> Callable[[str, Any], list] | None:
+    """What the twin would have decided on ``rec`` (``twin_core.online.recorded``), as a
+    function of each recorded message giving the messages to show with it (predictions, OOS
+    alerts, divert commands; ``("", None)`` at the end gives the last ones); None when the
+    recording holds the twin's own decisions (a recording of a running twin: they are shown as
+    recorded). Predictions are computed only when the recording holds none."""
+    from schemas.messages import PredictedConcentration
+    from services.oos import to_message
+    from twin_core.online.recorded import RecordedDecisions
+
+    line = spec.name
+    recorded = {m.key for m in rec.messages}
+    if keys.oos_alert(line) in recorded or keys.divert_command(line) in recorded:
+        return None
+    predicted_key = keys.predicted_concentration(line, "outlet")
+    with_predictions = predicted_key not in recorded
+    twin = RecordedDecisions(spec)
+    seqs = {"alert": 0, "divert": 0, "predicted": 0}
+
+    def derived(key: str, msg: Any) -> list[tuple[str, Any]]:
+        preds, outs = twin.push(key, msg) if msg is not None else ([], twin.finish())
+        shown: list[tuple[str, Any]] = []
+        for t, conc in preds if with_predictions else []:
+            for component, c in conc.items():
+                shown.append(
+                    (
+                        predicted_key,
+                        PredictedConcentration(
+                            t=t,
+                            seq=seqs["predicted"],
+                            model=twin.blender.kernel.model_name,
+                            component=component,
+                            concentration_pct_w_w=c,
+                        ),
+                    )
+                )
+                seqs["predicted"] += 1
+        for o in outs:
+            out_key = keys.oos_alert(line) if o.kind == "alert" else keys.divert_command(line)
+            shown.append((out_key, to_message(o, seqs[o.kind])))
+            seqs[o.kind] += 1
+        return shown
+
+    return derived
+
+
 def start_recording_feed(
     rec: Recording, hub: DashboardHub, speed: float, should_stop: Callable[[], bool]
 ) -> threading.Thread:
     """Replay ``rec`` into the hub at ``speed`` times real time on a thread
-    (``services.recording.replay``: the same schedule as ``twin replay``); the hub's
-    :attr:`~DashboardHub.finished` is set at its end."""
+    (``services.recording.replay``: the same schedule as ``twin replay``), with what the twin
+    would have decided on it (:func:`recorded_decisions`) as the replay reaches it, and say so
+    in the page's header; the hub's :attr:`~DashboardHub.finished` is set at its end."""
+    derived = recorded_decisions(rec, hub.spec)
 
     def publish(key: str, payload: bytes) -> None:
         model = keys.model_for_key(key)
         if model is None:
             return
         try:
-            hub.put(key, model.model_validate_json(payload))
+            msg = model.model_validate_json(payload)
         except ValueError as exc:  # a recorded message that does not validate: counted, skipped
             hub.put(key, RejectedMessage(t=0.0, detail=str(exc)))
+            return
+        hub.put(key, msg)
+        for k, m in derived(key, msg) if derived is not None else []:
+            hub.put(k, m)
 
     def run() -> None:
         try:
             replay(rec, publish, speed=speed, should_stop=should_stop)
+            for k, m in derived("", None) if derived is not None and not should_stop() else []:
+                hub.put(k, m)
         finally:
             hub.finished.set()
 
-    hub.source = f"recording {rec.path.name if rec.path else ''} at {speed:g}x"
+    decisions = (
+        "the twin's decisions as recorded"
+        if derived is None
+        else "alerts and divert windows computed by the twin's diverter from the recording "
+        "(declared model, no adoption)"
+    )
+    hub.source = f"recording {rec.path.name if rec.path else ''} at {speed:g}x; {decisions}"
     thread = threading.Thread(target=run, name="dashboard-recording", daemon=True)
     thread.start()
     return thread

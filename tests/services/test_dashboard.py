@@ -19,8 +19,9 @@ from schemas.line import LineSpec
 from schemas.messages import BlenderModelInUse, RtdEstimate
 from services.bus import free_port
 from services.dashboard import DashboardHub, Page, health_html, make_server, start_recording_feed
-from services.recording import read_recording
+from services.recording import read_recording, write_messages
 from twin_core.online.blender import declared_kernel
+from twin_core.plant.messages import simulate_messages
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "services" / "configs" / "line1_5pct.yaml"
@@ -28,22 +29,53 @@ RECORDING = ROOT / "recordings" / "line1_30min.mcap"
 
 
 def test_recording_fills_the_page():
-    """The bundled recording (1,801 NIR samples, one excipient refill) at 1e5x: every message
-    reaches the state, the NIR plot holds at most max_points decimated samples ending at the last
-    one, the refill shows as one window."""
+    """The bundled recording (1,801 NIR samples, one excipient refill, three tracer pulses) at
+    1e5x: every message reaches the state, with the twin's predictions and decisions computed
+    from it (three alerts, six divert commands, as `twin demo`'s live twin gives); the NIR plot
+    holds at most max_points decimated samples ending at the last one, the refill shows as one
+    window."""
     rec = read_recording(RECORDING)
     hub = DashboardHub(LineSpec.from_file(CONFIG), max_points=500)
     start_recording_feed(rec, hub, 1e5, lambda: False)
     assert hub.finished.wait(60)
     doc = Document()
     page = Page(doc, hub, period_ms=200, window_s=3600.0)
-    assert sum(hub.state.counters.values()) == len(rec.messages)
+    c = hub.state.counters
+    derived = c["PredictedConcentration"] + c["OosAlert"] + c["DivertCommand"]
+    assert sum(c.values()) - derived == len(rec.messages)
+    assert (c["OosAlert"], c["DivertCommand"]) == (3, 6)
     nir = page.sources["measured:nir1"].data
     assert 2 <= len(nir["t"]) <= 500 and nir["t"][-1] == 1800.0
     assert page.sources["refill_windows"].data["x0"] != []
     assert "newest NIR sample 1800 s" in page.divs["status"].text
-    assert "OOS alerts</b><p>none" in page.divs["alerts"].text
-    assert "accepting" in page.divs["diverter"].text
+    assert "divert windows computed by the twin" in page.divs["status"].text
+    assert page.divs["alerts"].text.count("data-alert-id") == 3
+    assert "accepting" in page.divs["diverter"].text  # at 1800 s, past every window
+
+
+def test_recording_mode_shows_what_the_twin_would_decide(tmp_path):
+    """A plant recording (no twin ran on it) with an API feeder disturbance whose NIR readings
+    leave the specification: the page shows the alert the twin's diverter gives on it, the gate
+    diverting inside its window and the readings beyond the limit inside that window, not
+    "OOS alerts: none" and "accepting" beside them."""
+    spec = LineSpec.from_file(CONFIG)
+    dist = {"feeder": "api", "t_s": 200.0, "delta_kg_h": 0.6, "duration_s": 30.0}
+    _, msgs = simulate_messages(spec, 600.0, 0, [dist])
+    write_messages(tmp_path / "d.mcap", msgs)
+    hub = DashboardHub(spec)
+    start_recording_feed(read_recording(tmp_path / "d.mcap"), hub, 1e5, lambda: False)
+    assert hub.finished.wait(60)
+    page = Page(Document(), hub, period_ms=200, window_s=3600.0)
+    upper = spec.limits("api").upper_pct_w_w
+    nir = page.sources["measured:nir1"].data
+    beyond = [t for t, y in zip(nir["t"], nir["y"], strict=True) if y > upper]
+    assert beyond, "the disturbance must take the NIR beyond the upper limit"
+    assert "line1.api.feed-000000200000" in page.divs["alerts"].text
+    windows = hub.state.divert_windows()  # the early (.open) and the final window
+    assert len(windows) == 2
+    lo, hi = min(w.t_start_s for w in windows), max(w.t_end_s for w in windows)
+    assert all(lo <= t <= hi for t in beyond)
+    assert hub.state.diverter(beyond[0]).diverting
 
 
 def test_page_is_served_from_its_own_origin_only():
