@@ -34,7 +34,7 @@ time, raw value)``).
   unit reported there is no clock). It is **refused** (``future``, listed in
   :attr:`MessageAssembler.refused`) as soon as its node reports an earlier or equal stamp (one
   node's notifications come in order: the later one with the earlier stamp is the PLC's, the
-  held one was out of time), when more than :data:`HOLD_MAX` are held for its unit, or at
+  held one was out of time), when more than :data:`HOLD_MAX` are held for its node, or at
   :meth:`MessageAssembler.flush`.
   A held sample never sets its unit's last time, so the real samples after a forged or
   clock-jumped one are not taken for ``late``. An export (``twin import``) has no live clock:
@@ -44,6 +44,7 @@ time, raw value)``).
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
@@ -67,8 +68,9 @@ __all__ = [
 _REJECTED = object()
 #: a stamp gap longer than this many sample periods is missing data (the close-loop's rule)
 GAP_PERIODS = 1.5
-#: live samples held ahead of the plant clock per unit; beyond, the one furthest ahead is refused
-HOLD_MAX = 1000
+#: live samples held ahead of the plant clock per node (ten times the bridge's server queue of
+#: a node: one publish after a stall); beyond, the one furthest ahead is refused
+HOLD_MAX = 10000
 
 
 class BadValue(ValueError):
@@ -150,6 +152,16 @@ class _Held:
     received_s: float
 
 
+def _ahead(queue: deque[_Held], limit: float) -> int:
+    """How many of a node's held samples (stamp order) the plant clock has reached."""
+    n = 0
+    for h in queue:
+        if h.t > limit:
+            break
+        n += 1
+    return n
+
+
 @dataclass
 class _Unit:
     """One message source: its key, its fields' nodes, its pending times and state."""
@@ -167,14 +179,17 @@ class _Unit:
     #: the latest stamp past the time checks and its receive time (the others' plant clock)
     clock_t: float | None = None
     clock_w: float = 0.0
-    held: list[_Held] = field(default_factory=list)
+    #: per field, the samples held ahead of the plant clock, in stamp (and arrival) order
+    held: dict[str, deque[_Held]] = field(default_factory=dict)
 
     def seen(self, now: float) -> float | None:
-        """This unit's latest stamp (accepted or held), advanced at real time to ``now``."""
-        points = [(h.t, h.received_s) for h in self.held]
+        """This unit's latest stamp (accepted, or each node's latest held), advanced at real
+        time to ``now``."""
+        points = [q[-1] for q in self.held.values() if q]
+        out = [h.t + (now - h.received_s) for h in points]
         if self.clock_t is not None:
-            points.append((self.clock_t, self.clock_w))
-        return max((t + (now - w) for t, w in points), default=None)
+            out.append(self.clock_t + (now - self.clock_w))
+        return max(out, default=None)
 
 
 class MessageAssembler:
@@ -322,16 +337,14 @@ class MessageAssembler:
         out, gaps = self.tick(received_s)
         # one node's notifications come in its order: its held samples stamped at or after
         # this one were out of time
-        for h in [h for h in unit.held if h.name == name and h.t >= t]:
-            unit.held.remove(h)
-            self._refuse(unit, h, f"its node then reported {t:.3f} s")
+        queue = unit.held.setdefault(name, deque())
+        while queue and queue[-1].t >= t:
+            self._refuse(unit, queue.pop(), f"its node then reported {t:.3f} s")
         clock = self._clock(unit, received_s)
-        if clock is not None and t > clock + self.tolerance_s:
-            unit.held.append(_Held(t, name, raw, received_s))
-            if len(unit.held) > HOLD_MAX:
-                far = max(unit.held, key=lambda h: h.t)
-                unit.held.remove(far)
-                self._refuse(unit, far, f"more than {HOLD_MAX} samples held")
+        if queue or (clock is not None and t > clock + self.tolerance_s):
+            queue.append(_Held(t, name, raw, received_s))
+            if len(queue) > HOLD_MAX:
+                self._refuse(unit, queue.pop(), f"more than {HOLD_MAX} samples of it held")
             return out, gaps
         m, g = self._take(unit, name, t, raw, received_s)
         m2, g2 = self.tick(received_s)
@@ -357,12 +370,12 @@ class MessageAssembler:
         while moved:
             moved = False
             for unit in self.units:
-                if not unit.held:
+                if not any(unit.held.values()):
                     continue
                 clock = self._clock(unit, now)
                 limit = math.inf if clock is None else clock + self.tolerance_s
-                for h in sorted((h for h in unit.held if h.t <= limit), key=lambda h: h.t):
-                    unit.held.remove(h)
+                ready = [q.popleft() for q in unit.held.values() for _ in range(_ahead(q, limit))]
+                for h in sorted(ready, key=lambda h: h.t):
                     self._count("future_held")
                     m, g = self._take(unit, h.name, h.t, h.raw, h.received_s)
                     out += m
@@ -455,7 +468,7 @@ class MessageAssembler:
         out: list[tuple[str, Message]] = []
         gaps: list[Gap] = []
         for unit in self.units:
-            for h in unit.held:
+            for h in [h for q in unit.held.values() for h in q]:
                 self._refuse(unit, h, "still ahead of the plant clock at the end")
             unit.held.clear()
             if unit.pending:
