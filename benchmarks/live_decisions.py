@@ -227,20 +227,29 @@ def score(run: Any, info: dict[str, Any], live: Path, spec: LineSpec) -> dict[st
     mass = sum(f.delivered_kg_h for f in run.feeders.values()) / 3600.0 * dt  # kg per tick
     oos = (c_true < lim.lower_pct_w_w) | (c_true > lim.upper_pct_w_w)
     rec = read_recording(live)
-    diverts, alerts, findings = {}, [], []
+    commands: dict[str, list[tuple[float, float, float, str]]] = {}
+    alerts, findings = [], []
     for m in rec.messages:
         if m.key.endswith("/divert/command"):
             d = json.loads(m.payload)
-            if d["action"] == "divert":
-                # the final window of an alert replaces its provisional one
-                base = d["alert_id"]
-                if d["command_id"].endswith(".final") or base not in diverts:
-                    diverts[base] = (d["t_start_s"], d["t_end_s"], d["t"])
+            commands.setdefault(d["alert_id"], []).append(
+                (d["t"], d["t_start_s"], d["t_end_s"], d["action"])
+            )
         elif m.key.endswith("/oos/alert"):
             alerts.append(json.loads(m.payload))
         elif m.key.endswith("/closeloop/finding"):
             findings.append(json.loads(m.payload))
-    windows = [(a, b) for a, b, _ in diverts.values()]
+    # what the gate diverted: each command from its decision time (product that passed the
+    # gate before it is gone), until the alert's next command replaces it
+    windows: list[tuple[float, float]] = []
+    diverts: dict[str, tuple[float, float, float]] = {}
+    for aid, cmds in commands.items():
+        cmds.sort()
+        for i, (td, a, b, action) in enumerate(cmds):
+            until = cmds[i + 1][0] if i + 1 < len(cmds) else math.inf
+            if action == "divert":
+                windows.append((max(a, td), min(b, until)))
+        diverts[aid] = (min(c[1] for c in cmds), max(c[2] for c in cmds), cmds[0][0])
     diverted = _union(windows, t)
     t_lo, t_hi = lot_window_s(spec)
     allowed = _union([(a + t_lo, b + t_hi) for a, b in info["disturbances"]], t)

@@ -289,7 +289,11 @@ class OosSettings(StrictModel):
     inlet_n_on / inlet_n_off: debounce of that detector; lot_lower / lot_upper: F(t) quantiles of
     the lot boundaries (seed ch. 6: 0.5 % / 99.5 %); use_funnel: flag feeder disturbances early;
     stall_release_s: how long a stalled input stream (e.g. the blender down) may hold the
-    diverter's decisions back before it decides on the streams present.
+    diverter's decisions back before it decides on the streams present. divert_window: the
+    outlet window of a flagged feeder disturbance, ``excursion`` (where its predicted outlet
+    leaves the specification narrowed by ``divert_guard_pct_w_w`` on each side, widened by
+    ``divert_pad_s``; ``twin_core.quality.lots.excursion_window``) or ``lot`` (the lot
+    boundaries: every sample holding >= lot_lower of the disturbed material).
     """
 
     n_on: int = Field(3, ge=1)
@@ -304,6 +308,9 @@ class OosSettings(StrictModel):
     stall_release_s: Positive = Field(
         10.0, description="wall seconds a stalled input stream may hold decisions back"
     )
+    divert_window: Literal["excursion", "lot"] = "excursion"
+    divert_guard_pct_w_w: NonNegative = 0.3
+    divert_pad_s: NonNegative = 5.0
 
 
 class RtdSettings(StrictModel):

@@ -37,7 +37,7 @@ from typing import Literal
 import numpy as np
 
 from twin_core.online.alerts import EpisodeEvent, HysteresisTracker, episode_id
-from twin_core.online.funnel import FlagEvent, FunnelFlagger
+from twin_core.online.funnel import Excursion, FlagEvent, FunnelFlagger
 
 __all__ = ["DiverterOutput", "OosDecider"]
 
@@ -78,6 +78,8 @@ class OosDecider:
         window: traceability ``(t_in_start, t_in_end) -> (t_out_start, t_out_end)``.
         n_on, n_off, hysteresis: outlet episode debounce and deadband.
         inlet_detect, inlet_n_on, inlet_n_off: inlet episode detector.
+        excursion: the predicted outlet window of an inlet episode
+            (``twin_core.online.funnel.FunnelFlagger``), or None for the lot window.
     """
 
     line: str
@@ -94,11 +96,14 @@ class OosDecider:
     inlet_detect: float = 0.3
     inlet_n_on: int = 1
     inlet_n_off: int = 3
+    excursion: Excursion | None = None
     confirmed_: dict[str, int] = field(default_factory=lambda: {"predicted": 0, "measured": 0})
     _flagger: FunnelFlagger | None = field(init=False, repr=False)
     _trackers: dict[str, HysteresisTracker] = field(init=False, repr=False)
     _windows: list[list[float]] = field(default_factory=list, repr=False)
     _own: dict[str, bool] = field(default_factory=dict, repr=False)
+    #: index in ``_windows`` of each flagged inlet episode's provisional window
+    _open: dict[str, int] = field(default_factory=dict, repr=False)
     #: inlet ticks that held tracer (plant time, kg of this component), the latest ones
     _tracer: deque[tuple[float, float]] = field(
         default_factory=lambda: deque(maxlen=10_000), repr=False
@@ -119,6 +124,7 @@ class OosDecider:
                 n_on=self.inlet_n_on,
                 n_off=self.inlet_n_off,
                 prefix=f"{base}.feed",
+                excursion=self.excursion,
             )
         self._trackers = {
             src: HysteresisTracker(
@@ -128,14 +134,19 @@ class OosDecider:
         }
 
     def set_funnel(
-        self, gain: np.ndarray | None, window: Callable[[float, float], tuple[float, float]]
+        self,
+        gain: np.ndarray | None,
+        window: Callable[[float, float], tuple[float, float]],
+        excursion: Excursion | None = None,
     ) -> None:
-        """A new E(t) (the model the blender adopted): its funnel gain and traceability apply
-        to the inlet episodes from now on (an episode in progress keeps its id)."""
-        self.gain, self.window = gain, window
+        """A new E(t) (the model the blender adopted): its funnel gain, traceability and
+        predicted excursions apply to the inlet episodes from now on (an episode in progress
+        keeps its id)."""
+        self.gain, self.window, self.excursion = gain, window, excursion
         if self._flagger is not None and gain is not None:
             self._flagger.gain = np.asarray(gain, dtype=float)
             self._flagger.window = window
+            self._flagger.excursion = excursion
 
     @property
     def limit(self) -> float:
@@ -285,12 +296,14 @@ class OosDecider:
             cause=cause,
         )
         if ev.kind == "flag":
+            self._open[ev.id] = len(self._windows)
             self._windows.append([ev.t_out_start, math.inf])
             return [DiverterOutput(kind="divert", id=f"{ev.id}.open", **common)]
-        for w in self._windows:
-            if w[0] == ev.t_out_start and math.isinf(w[1]):
-                w[1] = ev.t_out_end
-                break
+        i = self._open.pop(ev.id, None)
+        if i is not None:  # the final window replaces the provisional one
+            self._windows[i] = [ev.t_out_start, ev.t_out_end]
+        else:
+            self._windows.append([ev.t_out_start, ev.t_out_end])
         return [
             DiverterOutput(kind="alert", id=ev.id, **common),
             DiverterOutput(kind="divert", id=f"{ev.id}.final", **common),

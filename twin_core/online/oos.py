@@ -37,11 +37,12 @@ import numpy as np
 from schemas.line import LineSpec
 from twin_core.online.blender import BlenderKernel
 from twin_core.online.diverter import DiverterOutput, OosDecider
+from twin_core.online.funnel import Excursion
 from twin_core.online.inlet import FeederSample, InletStream, InletTick, tracer_pulse
 from twin_core.online.merge import WatermarkMerger
 from twin_core.plant.effects import Effect
 from twin_core.quality.funnel import funnel_gain
-from twin_core.quality.lots import diversion_window
+from twin_core.quality.lots import diversion_window, excursion_window
 
 __all__ = ["INLET_LEAD_TICKS", "OosCore"]
 
@@ -60,6 +61,20 @@ def traceability(
         return diversion_window(a, b, tk, e, lower, upper)
 
     return window
+
+
+def predicted_excursion(
+    e: np.ndarray, dt: float, target: float, lower: float, upper: float, guard: float, pad: float
+) -> Excursion:
+    """The outlet window of an inlet episode from its predicted outlet
+    (``twin_core.quality.lots.excursion_window`` with E(t) ``e``, the guard narrowing the
+    limits), widened by ``pad`` s on each side: ``(t_in_start, deviations) -> window | None``."""
+
+    def excursion(t0: float, dev: np.ndarray) -> tuple[float, float] | None:
+        w = excursion_window(t0, dev, e, dt, target, lower, upper, guard)
+        return None if w is None else (w[0] - pad, w[1] + pad)
+
+    return excursion
 
 
 class OosCore:
@@ -98,6 +113,7 @@ class OosCore:
                 inlet_detect=o.inlet_detect_pct_w_w,
                 inlet_n_on=o.inlet_n_on,
                 inlet_n_off=o.inlet_n_off,
+                excursion=self._excursion(s.component),
             )
             for s in spec.spec
         }
@@ -138,10 +154,27 @@ class OosCore:
         gain = funnel_gain(e, dt) if o.use_funnel else None
         return gain, traceability(e, dt, o.lot_lower, o.lot_upper)
 
+    def _excursion(self, component: str) -> Excursion | None:
+        """The predicted-excursion window of ``component``'s inlet episodes under the E(t) in
+        use (``oos.divert_window: excursion``), else None (the lot window)."""
+        o = self.spec.oos
+        if o.divert_window != "excursion":
+            return None
+        s = next(x for x in self.spec.spec if x.component == component)
+        return predicted_excursion(
+            self.kernel.e,
+            self.spec.dt_s,
+            s.target_pct_w_w,
+            s.lower_pct_w_w,
+            s.upper_pct_w_w,
+            o.divert_guard_pct_w_w,
+            o.divert_pad_s,
+        )
+
     def _refresh_funnel(self) -> None:
         gain, window = self._funnel()
-        for d in self.deciders.values():
-            d.set_funnel(gain, window)
+        for comp, d in self.deciders.items():
+            d.set_funnel(gain, window, self._excursion(comp))
 
     def adopt_estimate(self, model: str, params: Mapping[str, float]) -> None:
         """The blender adopted an RTD estimate: follow it (funnel and lot boundaries)."""

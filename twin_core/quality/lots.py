@@ -13,7 +13,7 @@ from numpy.typing import ArrayLike
 
 from twin_core.rtd.convolution import cumulative
 
-__all__ = ["quantile_time", "lot_boundaries", "diversion_window"]
+__all__ = ["quantile_time", "lot_boundaries", "diversion_window", "excursion_window"]
 
 
 def _check_level(name: str, value: float) -> float:
@@ -77,3 +77,48 @@ def diversion_window(
     lo, hi = lot_boundaries(t, e, lower, upper)
     t0 = float(np.asarray(t, dtype=float)[0])
     return ts + lo - t0, te + hi - t0
+
+
+def excursion_window(
+    t_start: float,
+    deviation: ArrayLike,
+    e: ArrayLike,
+    dt: float,
+    target: float,
+    lower: float,
+    upper: float,
+    guard: float = 0.0,
+) -> tuple[float, float] | None:
+    """Outlet window where an inlet disturbance's predicted outlet leaves [lower + guard,
+    upper - guard], or None when it stays inside.
+
+    ``deviation``: the inlet composition's deviation from ``target`` (% w/w) on the tick grid
+    from ``t_start``; ``e``: E(t) on the same grid from 0 (sum(e) dt = 1). For a linear blender
+    the outlet deviation is the convolution (Engisch & Muzzio 2016, J. Pharm. Innov. 11:64,
+    Eq. 1 of the funnel plot)
+
+        c_out(t_start + k dt) = target + dt sum_j deviation[j] e[k - j],
+
+    and the window is [first, last] plant time of the samples outside the guarded limits: the
+    product the disturbance actually puts at risk, where the lot boundaries
+    (:func:`diversion_window`) divert every outlet sample holding >= 0.5 % of the disturbed
+    material, in specification or not. ``guard`` (% w/w, >= 0) widens the window for the error
+    of E(t) and of the inlet signal.
+    """
+    if not dt > 0:
+        raise ValueError(f"dt must be > 0, got {dt!r}")
+    if not (guard >= 0 and lower + guard < target < upper - guard):
+        raise ValueError(
+            f"guard must be >= 0 and leave target inside the guarded limits, got guard {guard!r} "
+            f"with target {target!r} in ({lower!r}, {upper!r})"
+        )
+    d = np.asarray(deviation, dtype=float)
+    k = np.asarray(e, dtype=float)
+    if d.size == 0 or k.size == 0:
+        return None
+    c = target + np.convolve(d, k) * dt
+    out = np.flatnonzero((c < lower + guard) | (c > upper - guard))
+    if out.size == 0:
+        return None
+    t0 = float(t_start)
+    return t0 + float(out[0]) * dt, t0 + float(out[-1]) * dt

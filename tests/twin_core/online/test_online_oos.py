@@ -33,13 +33,7 @@ def tracer_run(spec: LineSpec, seed: int = 9):
     return simulate_line(cfg, 600.0, dt_s=1.0, seed=seed)
 
 
-def test_an_announced_tracer_pulse_is_traced_early():
-    """A 10 g API tracer pulse (seed ch. 6) is an OOS event: the diverter traces it from its
-    event (arriving after the flows of its tick) to the outlet window of RTD traceability
-    (seed lot boundaries with Table 6.2's E(t)), with the early divert command issued before the
-    window opens; the predicted and measured excursions confirm it (no second alert)."""
-    spec = spec_with(services=["blender", "oos"])
-    run = tracer_run(spec)
+def _traced_tracer_pulse(spec: LineSpec, run) -> list:
     bp, core = BlenderPredictor(spec), OosCore(spec)
     outs = []
     for k, m in run_messages(run, spec):
@@ -54,6 +48,20 @@ def test_an_announced_tracer_pulse_is_traced_early():
             core.tracer_pulse("api", m.t, m.mass_kg, m.duration_s)
             bp.add_pulse("api", m.t, m.mass_kg, m.duration_s)
     outs += core.end_of_stream()
+    d = core.deciders["api"]
+    assert d.confirmed_["predicted"] == 1 and d.confirmed_["measured"] == 1
+    return outs
+
+
+def test_an_announced_tracer_pulse_is_traced_early():
+    """A 10 g API tracer pulse (seed ch. 6) is an OOS event: the diverter traces it from its
+    event (arriving after the flows of its tick) to the outlet window of RTD traceability
+    (seed lot boundaries with Table 6.2's E(t), ``oos.divert_window: lot``), with the early
+    divert command issued before the window opens; the predicted and measured excursions
+    confirm it (no second alert)."""
+    spec = spec_with(services=["blender", "oos"])
+    spec.oos.divert_window = "lot"
+    outs = _traced_tracer_pulse(spec, tracer_run(spec))
     alerts = [o for o in outs if o.kind == "alert"]
     assert [a.id for a in alerts] == ["line1.api.feed-000000300000"]
     e = declared_kernel(spec)
@@ -61,8 +69,26 @@ def test_an_announced_tracer_pulse_is_traced_early():
     assert alerts[0].t_start == pytest.approx(lo) and alerts[0].t_end == pytest.approx(hi)
     opened = [o for o in outs if o.id.endswith(".open")]
     assert len(opened) == 1 and opened[0].t < lo
-    d = core.deciders["api"]
-    assert d.confirmed_["predicted"] == 1 and d.confirmed_["measured"] == 1
+
+
+def test_the_excursion_window_diverts_what_the_pulse_puts_out_of_spec_and_little_more():
+    """With the default ``divert_window: excursion`` the final window is where the pulse's
+    predicted outlet (its inlet convolved with the E(t) in use) leaves the guarded
+    specification, padded: it covers every sample of the simulator's true outlet outside the
+    specification (reference: the plant simulator's noise-free outlet), with at most 2 x
+    (pad + 3) s of in-specification product around it, and the early command comes before
+    the first out-of-specification sample leaves."""
+    spec = spec_with(services=["blender", "oos"])
+    run = tracer_run(spec)
+    outs = _traced_tracer_pulse(spec, run)
+    (alert,) = [o for o in outs if o.kind == "alert"]
+    c = run.outlet_true_pct_w_w["api"]
+    out = run.t_s[(c > 11.5) | (c < 8.5)]
+    assert alert.t_start <= out[0] and alert.t_end >= out[-1]
+    extra = (out[0] - alert.t_start) + (alert.t_end - out[-1])
+    assert extra <= 2 * (spec.oos.divert_pad_s + 3.0), (alert.t_start, alert.t_end, out[[0, -1]])
+    (opened,) = [o for o in outs if o.id.endswith(".open")]
+    assert opened.t < out[0] and opened.t_start <= out[0]
 
 
 def test_no_blind_start_the_first_excursion_is_decided_on_its_last_sample():
@@ -225,8 +251,10 @@ def test_history_needs_no_wall_grace_after_the_catch_up():
 def test_the_diverter_follows_the_rtd_the_blender_adopted():
     """An adopted RTD estimate (a slower blender) moves the traced window to the estimate's lot
     boundaries and the funnel gain to the estimate's (twin_core.quality: diversion_window,
-    funnel_gain of the estimate's E(t)), as the blender's prediction does."""
+    funnel_gain of the estimate's E(t)), as the blender's prediction does; the predicted
+    excursion window (the default) moves with it."""
     spec = spec_with(services=["oos"])
+    spec.oos.divert_window = "lot"
     msgs = run_messages(tracer_run(spec), spec)
     slow = {"tau_d": 20.0, "tau": 30.0, "pe": 7.67}
 
@@ -251,6 +279,10 @@ def test_the_diverter_follows_the_rtd_the_blender_adopted():
     assert adopted.t_start > declared.t_start + 7.0  # 8 s more plug flow
     np.testing.assert_array_equal(core.deciders["api"].gain, funnel_gain(e, spec.dt_s))
     assert adopted.peak_deviation < declared.peak_deviation  # more back-mixing, lower peak
+    spec.oos.divert_window = "excursion"
+    (declared,), _ = alerts(False)
+    (adopted,), _ = alerts(True)
+    assert adopted.t_start > declared.t_start + 7.0
 
 
 def test_a_product_side_finding_diverts_only_what_it_puts_out_of_spec_and_is_not_yet_diverted():

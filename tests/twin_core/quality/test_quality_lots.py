@@ -3,7 +3,12 @@
 import numpy as np
 import pytest
 
-from twin_core.quality.lots import diversion_window, lot_boundaries, quantile_time
+from twin_core.quality.lots import (
+    diversion_window,
+    excursion_window,
+    lot_boundaries,
+    quantile_time,
+)
 from twin_core.rtd.models import axial_dispersion_open, cstr
 
 
@@ -61,3 +66,26 @@ def test_lots_errors():
         lot_boundaries(t, np.zeros_like(t))
     with pytest.raises(ValueError, match="t_end must be >= t_start"):
         diversion_window(5.0, 1.0, t, e)
+
+
+def test_excursion_window_of_a_rectangle_through_a_cstr_matches_the_closed_form():
+    """Reference: a rectangular inlet deviation h over d through a CSTR (E = exp(-t/tau)/tau)
+    gives c(t) = h (1 - exp(-t/tau)) for t < d and c(d) exp(-(t - d)/tau) after, so the outlet
+    exceeds a limit L from t1 = -tau ln(1 - L/h) to t2 = d + tau ln(c(d)/L)."""
+    dt, tau, h, d, L = 0.01, 20.0, 3.0, 60.0, 1.5
+    t = np.arange(0.0, 400.0, dt)
+    e = np.exp(-t / tau) / tau
+    dev = np.full(int(round(d / dt)), h)
+    w = excursion_window(100.0, dev, e, dt, 10.0, 10.0 - L, 10.0 + L)
+    cd = h * (1.0 - np.exp(-d / tau))
+    t1, t2 = -tau * np.log(1.0 - L / h), d + tau * np.log(cd / L)
+    assert w == pytest.approx((100.0 + t1, 100.0 + t2), abs=3 * dt)
+    # a guard of 0.5 widens it to the limit L - 0.5
+    g = excursion_window(100.0, dev, e, dt, 10.0, 10.0 - L, 10.0 + L, guard=0.5)
+    assert g[0] == pytest.approx(100.0 - tau * np.log(1.0 - (L - 0.5) / h), abs=3 * dt)
+    # a deviation that stays inside: no window; a negative one mirrors
+    assert excursion_window(0.0, np.full(10, 1.0), e, dt, 10.0, 8.5, 11.5) is None
+    neg = excursion_window(100.0, -dev, e, dt, 10.0, 10.0 - L, 10.0 + L)
+    assert neg == pytest.approx(w)
+    with pytest.raises(ValueError, match="guard"):
+        excursion_window(0.0, dev, e, dt, 10.0, 8.5, 11.5, guard=2.0)
