@@ -240,6 +240,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
         + (" (stopped)" if stats.stopped else ""),
         flush=True,
     )
+    own = line.get("service_name", "replay")
+    if stats.published and not [n for n in stats.acknowledged_by if n != own]:
+        print(
+            "twin replay: warning: no service or recorder on the bus acknowledged the messages "
+            "(nobody subscribed?)",
+            file=sys.stderr,
+            flush=True,
+        )
     return 0
 
 
