@@ -30,6 +30,7 @@ import json
 import logging
 import secrets
 import shutil
+import socket
 import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -53,8 +54,10 @@ log = logging.getLogger(__name__)
 #: plant time 0 of the loopback plant's source timestamps
 EPOCH = datetime(2026, 1, 1, tzinfo=UTC)
 NAMESPACE = "urn:powder-twin:loopback-plant"
-#: application URI of the bridge's certificate (asyncua's client default)
-CLIENT_URI = "urn:freeopcua:client"
+#: application URIs of the server's and the bridge's certificates (asyncua's defaults, which
+#: each side checks its own certificate against)
+SERVER_URI = "urn:freeopcua:python:server"
+CLIENT_URI = "urn:example.org:FreeOpcUa:opcua-asyncio"
 #: FeederFlow field -> (node name suffix, unit served)
 FEEDER_NODES = {
     "mass_flow_kg_h": ("MassFlow", "kg/h"),
@@ -124,7 +127,11 @@ def _self_signed(folder: Path, who: str, uri: str, use: Any) -> tuple[Path, Path
         key,
         uri,
         {"organizationName": "powder-twin"},
-        [x509.UniformResourceIdentifier(uri), x509.DNSName("localhost")],
+        [
+            x509.UniformResourceIdentifier(uri),
+            x509.DNSName("localhost"),
+            x509.DNSName(socket.gethostname()),
+        ],
         extended=[use],
         days=30,
     )
@@ -142,7 +149,7 @@ def make_pki(folder: Path, user: str = "twin", password: str | None = None) -> P
 
     folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     folder.chmod(0o700)
-    server = _self_signed(folder, "server", NAMESPACE, ExtendedKeyUsageOID.SERVER_AUTH)
+    server = _self_signed(folder, "server", SERVER_URI, ExtendedKeyUsageOID.SERVER_AUTH)
     client = _self_signed(folder, "client", CLIENT_URI, ExtendedKeyUsageOID.CLIENT_AUTH)
     pw = folder / "opcua.pw"
     write_private(pw, password if password is not None else secrets.token_urlsafe(24))
