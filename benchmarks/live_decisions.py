@@ -239,17 +239,21 @@ def score(run: Any, info: dict[str, Any], live: Path, spec: LineSpec) -> dict[st
             alerts.append(json.loads(m.payload))
         elif m.key.endswith("/closeloop/finding"):
             findings.append(json.loads(m.payload))
-    # what the gate diverted: each command from its decision time (product that passed the
-    # gate before it is gone), until the alert's next command replaces it
+    # what the gate diverted or the twin rejected: each command's window until the alert's
+    # next command replaces it (a window decided after its product passed the gate rejects
+    # that product all the same)
     windows: list[tuple[float, float]] = []
     diverts: dict[str, tuple[float, float, float]] = {}
     for aid, cmds in commands.items():
         cmds.sort()
-        for i, (td, a, b, action) in enumerate(cmds):
-            until = cmds[i + 1][0] if i + 1 < len(cmds) else math.inf
-            if action == "divert":
-                windows.append((max(a, td), min(b, until)))
-        diverts[aid] = (min(c[1] for c in cmds), max(c[2] for c in cmds), cmds[0][0])
+        own = [
+            (a, min(b, cmds[i + 1][0] if i + 1 < len(cmds) else math.inf))
+            for i, (_, a, b, action) in enumerate(cmds)
+            if action == "divert"
+        ]
+        windows += own
+        if own:
+            diverts[aid] = (min(w[0] for w in own), max(w[1] for w in own), cmds[0][0])
     diverted = _union(windows, t)
     t_lo, t_hi = lot_window_s(spec)
     allowed = _union([(a + t_lo, b + t_hi) for a, b in info["disturbances"]], t)

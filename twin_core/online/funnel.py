@@ -23,9 +23,9 @@ delays the outlet. The window at the outlet comes from RTD traceability (lot bou
 predicted outlet: ``excursion(t_in_start, deviations) -> (t_out_start, t_out_end) | None``
 (``twin_core.quality.lots.excursion_window``: where the convolution of the episode's inlet
 deviations with E(t) leaves the guarded specification). A flag's provisional window starts
-where the episode so far, its last deviation held, would leave it, and ends at the lot
-boundary (the episode's end is not known yet); the final window is the whole episode's
-excursion (the lot window when its prediction stays inside). The rectangle test is
+where the episode so far, its last deviation held, would leave it (or at the lot boundary),
+and holds until the final window replaces it (the episode's end is not known yet); the final
+window is the whole episode's excursion (the lot window when its prediction stays inside). The rectangle test is
 conservative for shapes other than a rectangle (the peak is held over the whole episode).
 """
 
@@ -45,6 +45,10 @@ __all__ = ["Excursion", "FlagEvent", "FunnelFlagger"]
 Excursion = Callable[[float, np.ndarray], "tuple[float, float] | None"]
 #: inlet samples an episode keeps for its excursion (beyond: the lot window), ~1 day at 1 Hz
 MAX_EPISODE_SAMPLES = 86400
+#: length of a flag's provisional outlet window, s: it holds until the final one replaces it
+#: (a window ending at the lot boundary of the episode so far left the product of a longer
+#: episode between that end and the final window undiverted)
+PROVISIONAL_S = 3600.0
 
 
 @dataclass
@@ -52,8 +56,9 @@ class FlagEvent:
     """A flagged inlet disturbance.
 
     ``kind``: ``flag`` when the episode first leaves the feasible region (early warning),
-    ``close`` when a flagged episode ends (final windows). ``t_out_end`` is provisional
-    (as if the disturbance ended now) for ``flag``.
+    ``close`` when a flagged episode ends (final windows). For ``flag``, ``t_out_end`` is
+    provisional: :data:`PROVISIONAL_S` after the window's start, so that the gate diverts
+    until the final window replaces it however long the episode lasts.
     """
 
     kind: Literal["flag", "close"]
@@ -132,6 +137,8 @@ class FunnelFlagger:
     def _outlet_window(self, kind: Literal["flag", "close"], ep: Episode) -> tuple[float, float]:
         """The outlet window of an episode (module docstring)."""
         t_out_start, t_out_end = self.window(ep.t_start, ep.t_end)
+        if kind == "flag":
+            t_out_end = t_out_start + PROVISIONAL_S
         if self.excursion is None:
             return t_out_start, t_out_end
         half = 0.5 * self.dt

@@ -307,3 +307,27 @@ def test_a_product_side_finding_diverts_only_what_it_puts_out_of_spec_and_is_not
         ("divert", 2500.0, 3000.0),
     ]
     assert d.product_risk(3000.0, "f3", 2500.0, 3000.0, 9.2, 12.0, None) == []
+
+
+def test_a_long_disturbance_stays_diverted_until_its_final_window():
+    """A flagged feeder disturbance longer than the blender's lot window: the provisional
+    divert window holds until the final one replaces it. It used to end at the lot boundary
+    of the episode so far (flag time + 63 s), and the product between that end and the final
+    window (an 88 s disturbance: 24 s of out-of-specification product) was not diverted;
+    reference: the plant simulator's true outlet."""
+    spec = spec_with(services=["oos"])
+    dist = [{"feeder": "api", "t_s": 300.0, "delta_kg_h": -0.6, "duration_s": 120.0}]
+    run, msgs = simulate_messages(spec, 900.0, seed=3, disturbances=dist)
+    core = OosCore(spec)
+    outs = []
+    for k, m in msgs:
+        if isinstance(m, FeederFlow):
+            outs += core.flow(keys.parse_key(k).id, m.t, m.mass_flow_kg_h)
+    outs += core.end_of_stream()
+    (opened,) = [o for o in outs if o.id.endswith(".open")]
+    (final,) = [o for o in outs if o.id.endswith(".final")]
+    assert opened.t_end >= final.t  # the gate diverts until the final window comes
+    c = run.outlet_true_pct_w_w["api"]
+    out = run.t_s[(c < 8.5) | (c > 11.5)]
+    covered = [(opened.t_start, min(opened.t_end, final.t)), (final.t_start, final.t_end)]
+    assert all(any(a <= t <= b for a, b in covered) for t in out)

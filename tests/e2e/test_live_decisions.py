@@ -1,0 +1,52 @@
+"""The live twin's decisions on the issue's clean record, started as users start it.
+
+`twin plant simulate --disturbance api:1800:0.6:30` (no hidden effect) replayed into `twin up`
+with the shipped `line1.yaml` (secured bus, every service, the live close-loop) used to divert
+the disturbance's window and also 1050-2100 s of good product: the live close-loop claimed a
+sensor gain and a sensor offset in an effect-free record and put the product at risk.
+Reference: the plant simulator's truth (the true outlet API content, no hidden effect); the
+scoring is ``benchmarks/live_decisions.py``'s (what the gate diverted from each command's
+decision time on). The record is 45 minutes long here (the issue's 1 h cut to the windows that
+claimed: 600 s and 2100 s).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+from schemas.line import LineSpec
+from services.recording import write_messages
+from twin_core.plant.messages import simulate_messages
+
+ROOT = Path(__file__).resolve().parents[2]
+BENCH = ROOT / "benchmarks" / "live_decisions.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("live_decisions", BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["live_decisions"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_a_clean_record_with_one_disturbance_diverts_only_its_window(bench, tmp_path):
+    spec = LineSpec.from_file(bench.LINE)
+    dist = [{"feeder": "api", "t_s": 1800.0, "delta_kg_h": 0.6, "duration_s": 30.0}]
+    run, msgs = simulate_messages(spec, 2700.0, seed=0, disturbances=dist)
+    rec = tmp_path / "plant.mcap"
+    write_messages(rec, msgs)
+    live, _ = bench.live_run(rec, tmp_path, speed=200.0)
+    info = {"family": "ordinary", "case": "issue", "disturbances": [(1800.0, 1830.0)]}
+    row = bench.score(run, info, live, spec)
+    assert row["oos_kg"] > 0.1  # the disturbance puts product out of specification
+    assert row["missed_oos_kg"] == 0.0, row
+    assert row["stray_divert_s"] == 0.0, row  # nothing diverted outside its RTD window
+    assert row["adopted"] == [] and row["product_at_risk"] == 0, row
+    # good product diverted: the padded excursion's margins only (< 30 s of production)
+    assert row["false_divert_kg"] < 30.0 * 12.0 / 3600.0, row
