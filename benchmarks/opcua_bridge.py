@@ -1,5 +1,7 @@
 """Benchmark: ``twin bridge opcua`` against the loopback OPC UA plant (asyncua server on
-loopback serving the bundled recording; 13 mapped nodes: 2 feeders x 6 fields and the NIR).
+loopback serving the bundled recording; 13 mapped nodes: 2 feeders x 6 fields and the NIR),
+over the plant's default security (Basic256Sha256 SignAndEncrypt, per-run certificates and
+user/password; the table's first runs in docs/opcua.md were with security None).
 
 1. *Throughput*: the plant plays ``--span`` s of plant time at each speed of ``--speeds``
    (node updates per second = 13 x speed); the bridge (no twin attached, a peer bus) must

@@ -13,7 +13,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
 from asyncua import Client, ua
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 
@@ -104,7 +103,6 @@ def _own_certificate(folder: Path) -> dict[str, str]:
     return {"certificate": str(cert), "private_key": str(key)}
 
 
-@pytest.mark.e2e
 def test_the_default_plant_is_secured_and_exposes_only_the_gate(tmp_path):
     plant = _Plant(tmp_path, "--speed", "5", "--write-config", "bridge.yaml")
     try:
@@ -134,7 +132,6 @@ def test_the_default_plant_is_secured_and_exposes_only_the_gate(tmp_path):
         assert plant.stop() == 0
 
 
-@pytest.mark.e2e
 def test_insecure_serves_the_open_server_and_says_so(tmp_path):
     plant = _Plant(tmp_path, "--insecure")
     try:
