@@ -13,6 +13,7 @@ still to come. Nothing here draws or talks to a bus: the dashboard service turns
 
 from __future__ import annotations
 
+import math
 from collections import Counter, deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -241,18 +242,33 @@ class DashboardState:
 
     def divert_windows(self) -> list[Window]:
         """The gate's divert windows in force: each ``divert`` command's window unless an
-        ``accept`` command for the same window came later (by ``(t, seq)``), by start time."""
+        ``accept`` command for the same window came later (by ``(t, seq)``), by start time. A
+        later command of the same alert (``alert_id``: the final window after the early,
+        provisional one) replaces it from its decision time ``t`` on: the earlier window ends
+        there (what passed before was diverted under it)."""
         accepted = {
             (c.t_start_s, c.t_end_s): (c.t, c.seq)
             for c in self._diverts.values()
             if c.action == "accept"
         }
-        windows = [
-            Window(c.t_start_s, c.t_end_s, c.command_id, c.reason)
-            for c in self._diverts.values()
-            if c.action == "divert"
-            and accepted.get((c.t_start_s, c.t_end_s), (-1, -1)) < (c.t, c.seq)
-        ]
+        replaced: dict[str, float] = {}
+        by_alert: dict[str, list[Any]] = {}
+        for c in self._diverts.values():
+            if getattr(c, "alert_id", None):
+                by_alert.setdefault(c.alert_id, []).append(c)
+        for cmds in by_alert.values():
+            cmds.sort(key=lambda c: (c.t, c.seq))
+            for earlier, later in zip(cmds, cmds[1:], strict=False):
+                replaced[earlier.command_id] = float(later.t)
+        windows = []
+        for c in self._diverts.values():
+            end = min(c.t_end_s, replaced.get(c.command_id, math.inf))
+            if (
+                c.action == "divert"
+                and end >= c.t_start_s
+                and accepted.get((c.t_start_s, c.t_end_s), (-1, -1)) < (c.t, c.seq)
+            ):
+                windows.append(Window(c.t_start_s, end, c.command_id, c.reason))
         return sorted(windows, key=lambda w: (w.t_start_s, w.ident))
 
     def diverter(self, t_s: float | None = None) -> DiverterState:

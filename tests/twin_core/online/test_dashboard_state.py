@@ -134,6 +134,21 @@ def test_diverter_state_and_upcoming_windows():
     assert [w.ident for w in s.diverter(300.0).upcoming] == ["c2", "c5"]
 
 
+def test_a_final_divert_window_replaces_the_provisional_one_of_its_alert():
+    """The diverter's early command of a flagged disturbance holds a provisional window (up to
+    3600 s from its start) until the alert's final command replaces it: after the final one,
+    the gate is diverting inside the final window only, not for the next hour."""
+    s = DashboardState()
+    opened = divert("a.open", 305.0, 0, 312.0, 3912.0).model_copy(update={"alert_id": "a"})
+    final = divert("a.final", 332.0, 1, 312.0, 369.0).model_copy(update={"alert_id": "a"})
+    s.add("twin/line1/divert/command", opened)
+    assert s.diverter(1800.0).diverting  # only the provisional window is known yet
+    s.add("twin/line1/divert/command", final)
+    assert s.diverter(350.0).diverting and s.diverter(350.0).current.ident == "a.final"
+    assert not s.diverter(1800.0).diverting
+    assert max(w.t_end_s for w in s.divert_windows()) == 369.0
+
+
 def test_refill_windows_from_flags_and_events():
     s = DashboardState()
     s.add(KEY_API, flow(10.0, 0))
