@@ -309,8 +309,8 @@ class OosSettings(StrictModel):
         10.0, description="wall seconds a stalled input stream may hold decisions back"
     )
     divert_window: Literal["excursion", "lot"] = "excursion"
-    divert_guard_pct_w_w: NonNegative = 0.3
-    divert_pad_s: NonNegative = 5.0
+    divert_guard_pct_w_w: NonNegative = 0.2
+    divert_pad_s: NonNegative = 3.0
 
 
 class RtdSettings(StrictModel):
