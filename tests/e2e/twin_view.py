@@ -17,6 +17,7 @@ from services.bus import HistoryFeed, open_session
 from services.recording import BusReplay, Recording
 from services.supervisor import Supervisor
 from twin_core.online.blender import declared_kernel
+from twin_core.online.oos import predicted_excursion
 from twin_core.quality.lots import diversion_window
 
 
@@ -98,10 +99,33 @@ def plant_replay(rec: Recording, sup: Supervisor) -> BusReplay:
 
 def expected_windows(spec: LineSpec, disturbances: list[dict]) -> list[tuple[float, float]]:
     """The outlet windows the declared blender gives each feeder disturbance (``t_s``,
-    ``duration_s``): the alert windows a correct diverter raises."""
+    ``duration_s``, ``delta_kg_h`` of the sensor's component): the alert windows a correct
+    diverter raises. ``oos.divert_window: lot``: the lot boundaries of the inlet stretch;
+    ``excursion``: where the rectangle's predicted outlet leaves the guarded specification
+    (its inlet deviation delta (100 - c0) / m_nom, ``twin_core.online.oos``'s linearised inlet
+    composition), padded."""
     e = declared_kernel(spec)
     tk = np.arange(e.size) * spec.dt_s
-    return [
-        diversion_window(d["t_s"], d["t_s"] + d["duration_s"] - spec.dt_s, tk, e)
-        for d in disturbances
-    ]
+    if spec.oos.divert_window == "lot":
+        return [
+            diversion_window(d["t_s"], d["t_s"] + d["duration_s"] - spec.dt_s, tk, e)
+            for d in disturbances
+        ]
+    s = next(x for x in spec.spec if x.component == spec.sensor.component)
+    m_nom = sum(f.setpoint_kg_h for f in spec.feeders)
+    o = spec.oos
+    excursion = predicted_excursion(
+        e,
+        spec.dt_s,
+        s.target_pct_w_w,
+        s.lower_pct_w_w,
+        s.upper_pct_w_w,
+        o.divert_guard_pct_w_w,
+        o.divert_pad_s,
+    )
+    out = []
+    for d in disturbances:
+        n = int(round(d["duration_s"] / spec.dt_s))
+        dev = np.full(n, d["delta_kg_h"] * (100.0 - s.target_pct_w_w) / m_nom)
+        out.append(excursion(d["t_s"], dev))
+    return out
