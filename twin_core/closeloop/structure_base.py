@@ -61,7 +61,9 @@ class StructureOptions:
     ``min_time_span_s`` the training span for a time dependence, ``max_laws`` the strongest
     parameter x covariate pairs (search-significant) tried on the held-out window. Periodic: multitaper
     time-bandwidth ``nw`` (2 nw - 1 tapers), ``max_sinusoids``, ``min_cycles`` in the training
-    window. Kernel: length ``kernel_s`` (None: 6 mean residence times of the model's E(t),
+    window, ``max_order``: pulses per screw revolution searched for a screw-locked pulsation
+    (1..``max_order`` for every feeder with a screw speed; 0: no screw-locked search).
+    Kernel: length ``kernel_s`` (None: 6 mean residence times of the model's E(t),
     120-600 s), knot spacing ``knot_s``, smoothing weights ``n_lambda``, ``cv_folds`` of
     contiguous blocks ``cv_block_s``, ``bootstrap`` replicates with blocks of
     ``bootstrap_block_s``, ``seed`` of the bootstrap.
@@ -78,6 +80,7 @@ class StructureOptions:
     nw: float = 4.0
     max_sinusoids: int = 2
     min_cycles: float = 12.0
+    max_order: int = 3
     kernel_s: float | None = None
     knot_s: float = 3.0
     n_lambda: int = 7
@@ -103,6 +106,8 @@ class StructureOptions:
             raise ValueError(f"groups must be >= 3, got {self.groups!r}")
         if self.nw < 1.5:
             raise ValueError(f"nw must be >= 1.5, got {self.nw!r}")
+        if self.max_order < 0:
+            raise ValueError(f"max_order must be >= 0, got {self.max_order!r}")
         if self.bootstrap < 0:
             raise ValueError(f"bootstrap must be >= 0, got {self.bootstrap!r}")
 

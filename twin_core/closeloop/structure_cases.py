@@ -344,6 +344,55 @@ def two_zone_case(
     )
 
 
+def openworld_case(
+    duration_s: float,
+    seed: int,
+    noise: float = 1.0,
+    amplitude: float = 0.0,
+    pulses_per_rev: float = 1.0,
+    tracers: bool = False,
+) -> StructureCase:
+    """A record of the open-world benchmark's scenario (``twin_core.plant.openworld_cases.
+    openworld_scenario``: its API and line-rate set-point steps and refills, cut to
+    ``duration_s``; the seed's NIR noise times ``noise``) simulated by the plant with the
+    finite-volume blender, with the plant's ``screw_pulsation`` of the API feeder
+    (``twin_core.plant.openworld``: the delivered flow times 1 + a sin(n theta + phi), theta the
+    screw's angle from its reported speed, averaged over each tick) when ``amplitude`` > 0,
+    else effect-free. Truth: the relative ``amplitude`` and ``pulses_per_rev`` n (the period
+    at a screw speed is 60 / (n rpm))."""
+    from twin_core.plant.openworld_cases import Setting, openworld_scenario
+
+    cfg = openworld_scenario(Setting(tracers, noise), duration_s)
+    phase = float(np.random.default_rng([seed, 53]).uniform(-math.pi, math.pi))
+    ow = (
+        [
+            {
+                "name": "screw_pulsation",
+                "target": "api",
+                "params": {
+                    "amplitude": amplitude,
+                    "pulses_per_rev": pulses_per_rev,
+                    "phase": phase,
+                },
+            }
+        ]
+        if amplitude > 0
+        else []
+    )
+    run = simulate_line(cfg, duration_s, seed=seed, open_world=ow, blender="fv")
+    data = RunData(
+        run.t_s,
+        run.measured_pct_w_w,
+        run.inputs(),
+        [event_record(e) for e in run.events],
+        name="screw_pulsation" if ow else "none",
+    )
+    truth: dict[str, Any] = {"kind": "periodic" if ow else None}
+    if ow:
+        truth.update(amplitude=amplitude, pulses_per_rev=pulses_per_rev, feeder="api")
+    return StructureCase(data.name, data, LineModel(run.config), run.sensor_true_pct_w_w, truth)
+
+
 __all__ = [
     "API_STEPS",
     "API_STEP_S",
@@ -351,6 +400,7 @@ __all__ = [
     "StructureCase",
     "base_run",
     "none_case",
+    "openworld_case",
     "pulsation_case",
     "structure_scenario",
     "throughput_level_index",
