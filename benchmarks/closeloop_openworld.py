@@ -24,6 +24,7 @@ import argparse
 import json
 import multiprocessing as mp
 import time
+import zlib
 from collections import Counter, defaultdict
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from tqdm import tqdm
 from twin_core.closeloop.check import check_recording
 from twin_core.closeloop.identify import IdentifyOptions
 from twin_core.closeloop.scenarios import EFFECT_MAGNITUDES, effect_spec
+from twin_core.plant.faults import DataFault, random_timing_fault
 from twin_core.plant.openworld_cases import (
     DURATION_S,
     FAULT_CASES,
@@ -52,7 +54,8 @@ FIELDS = [
     "status", "outcome", "claimed", "listed", "equivalents_field", "product_at_risk",
     "discriminating", "flagged", "status_data_quality", "both_listed", "lookalike_ok",
     "n_data_quality", "effect_rms", "product_rms", "product_mean", "noise_sd", "match_rms",
-    "rmse_before_heldout", "rmse_after_heldout", "sim_s", "method_s", "error",
+    "rmse_before_heldout", "rmse_after_heldout", "sim_s", "method_s", "error", "timing",
+    "clock_offsets",
 ]  # fmt: skip
 
 #: duration of the standard scenario the in-list magnitudes were sized for
@@ -108,11 +111,19 @@ def job_key(row: dict) -> tuple[str, str, int]:
     return (str(row["case"]), str(row["setting"]), int(row["seed"]))
 
 
-def one(job: tuple[Case, Setting, int, float, dict]) -> dict:
+def timing_fault(case: Case, setting: Setting, seed: int) -> tuple[DataFault, ...]:
+    """The random timing fault of a run (``--timing``): drawn from the run's seed, case and
+    setting (``twin_core.plant.faults.random_timing_fault``), so a run keeps its fault."""
+    key = zlib.crc32(f"{case.name}|{setting.label}|{seed}".encode())
+    return random_timing_fault(key, ("api", "excipient"))
+
+
+def one(job: tuple[Case, Setting, int, float, dict, bool]) -> dict:
     """Simulate one case, run the current method on its messages, score the report."""
-    case, setting, seed, duration, options = job
+    case, setting, seed, duration, options, timing = job
     t0 = time.perf_counter()
-    cr = run_case(case, setting, seed, duration)
+    fault = timing_fault(case, setting, seed) if timing else ()
+    cr = run_case(case, setting, seed, duration, timing=fault)
     t1 = time.perf_counter()
     error = ""
     try:
@@ -136,8 +147,20 @@ def one(job: tuple[Case, Setting, int, float, dict]) -> dict:
         sim_s=round(t1 - t0, 3),
         method_s=round(t2 - t1, 3),
         error=error,
+        timing=_timing_label(cr.truth.get("timing")),
+        clock_offsets="; ".join(
+            f"{c['series']} {c['offset_s']:+.2f} s [{c['low_s']:+.2f}, {c['high_s']:+.2f}]"
+            for c in report.get("clock_offsets") or []
+        ),
     )
     return {k: row.get(k, "") for k in FIELDS}
+
+
+def _timing_label(truth: dict | None) -> str:
+    """``kind stream size/share`` of a run's timing fault ('' without one)."""
+    if not truth:
+        return ""
+    return f"{truth['kind']} {truth['stream']} {truth.get('size', 0.0):+g} n={truth['n_samples']}"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -303,6 +326,34 @@ def summarize(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def paired_summary(rows: list[dict], aligned: list[dict]) -> str:
+    """Runs whose outcome (status and claimed effects) is the one of the same run (case,
+    setting, seed) without its timing fault, per family and timing-fault kind."""
+    base = {job_key(r): r for r in aligned}
+    pairs = [(r, base[job_key(r)]) for r in rows if job_key(r) in base]
+    if not pairs:
+        return "No paired runs."
+    same = [r["status"] == b["status"] and r["claimed"] == b["claimed"] for r, b in pairs]
+    t = []
+    for label, key in (("family", lambda r: r["family"]),
+                       ("timing fault", lambda r: (r["timing"] or "none").split(" ")[0])):  # fmt: skip
+        for k in sorted({key(r) for r, _ in pairs}):
+            g = [s for (r, _), s in zip(pairs, same) if key(r) == k]
+            t.append([f"{label}: {k}", len(g), sum(g), f"{sum(g) / len(g):.3f}"])
+    t.append(["all", len(same), sum(same), f"{sum(same) / len(same):.3f}"])
+    changed = [
+        f"{r['case']} seed {r['seed']} ({r['timing']}): {b['status']} {b['claimed'] or '-'} -> "
+        f"{r['status']} {r['claimed'] or '-'}"
+        for (r, b), s in zip(pairs, same)
+        if not s
+    ]
+    lines = ["**Outcome unchanged by the timing fault** (status and claims as without it)", ""]
+    lines += _table(["runs", "n", "unchanged", "share"], t)
+    if changed:
+        lines += ["", "Changed: " + "; ".join(changed)]
+    return "\n".join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -321,13 +372,24 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--options", default="{}", help="IdentifyOptions fields as JSON")
     ap.add_argument("--summary-only", action="store_true", help="re-print the tables of --out")
+    ap.add_argument(
+        "--timing",
+        action="store_true",
+        help="a random timing fault per run (twin_core.plant.faults.random_timing_fault)",
+    )
+    ap.add_argument(
+        "--paired",
+        default="",
+        help="CSV of the same runs without timing faults: the share of runs whose outcome "
+        "(status and claims) a timing fault left unchanged",
+    )
     args = ap.parse_args()
     out = Path(args.out)
     done = read_rows(out)
     seen = {job_key(r) for r in done}
     options = json.loads(args.options)
     jobs = [
-        (case, st, FAMILY_SEED[case.family] + i, args.duration, options)
+        (case, st, FAMILY_SEED[case.family] + i, args.duration, options, args.timing)
         for case, n in cases(args)
         for i in range(n)
         for st in settings(args.settings)
@@ -348,6 +410,8 @@ def main() -> int:
                             desc="open-world runs"):  # fmt: skip
                 append(row)
     text = summarize(done)
+    if args.paired:
+        text += "\n\n" + paired_summary(done, read_rows(Path(args.paired)))
     text += f"\nWall time of this invocation: {(time.perf_counter() - t0) / 60:.1f} min, " \
             f"{len(todo)} runs, {args.workers} workers."  # fmt: skip
     print(text)

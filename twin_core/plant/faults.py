@@ -24,6 +24,32 @@ Streams: ``"nir"`` (the probe's concentration) or a feeder id (its ``FeederFlow`
   clock reset; the messages keep their order);
 - ``duplicate_stamps``: in the interval every second message carries the time stamp of the one
   before (the clock did not advance: two readings share a stamp, the next tick has none).
+
+- ``refill_hold``: a feeder reports, while its refill flag is up, the flow of its last message
+  before the refill (a loss-in-weight controller's flow estimate frozen while the load cell
+  is disturbed by the refill; not a fault of the data, a way plants report: the check must
+  not take it for one).
+
+Timing faults (:data:`TIMING_KINDS`): the readings are right, the time they are given is not.
+Each acts on the whole record unless an interval is given (``t_s``/``duration_s``, default the
+whole record); the messages keep their arrival order (the order of the true times) unless the
+fault is a sampling one (``irregular``):
+
+- ``shift``: the value ``field`` of each message is the one of ``size`` messages before (a
+  whole number, +-1..3; negative: after), the rest of the message as it was: a feeder's
+  refill flag (``field="refilling"``) one sample before or after its held load-cell value, a
+  flow or a screw speed a sample off its stamp, a NIR reading stamped a sample early or late;
+- ``clock_offset``: every stamp of the stream is ``size`` s off (a source whose clock differs
+  from the others', up to 5 s); the messages arrive when they did; a message stamped before
+  0 is not kept;
+- ``jitter``: each stamp moved by U(-``size``, ``size``) s (``size`` up to half a sample
+  period), in the order of arrival;
+- ``irregular``: the stream is sampled at irregular times, its intervals the period times
+  U(1 - ``fraction``, 1 + ``fraction``): the values (linear between the original samples; the
+  refill flag the last one) at those times, numbered anew, arriving in time order;
+- ``drop_ticks``: a share ``fraction`` of the messages lost, isolated ones (a missing tick);
+- ``duplicate_ticks``: a share ``fraction`` of the messages delivered twice (the same stamp,
+  sequence number and values: a re-sent message).
 """
 
 from __future__ import annotations
@@ -38,22 +64,44 @@ import numpy as np
 from schemas import keys
 from schemas.line import LineConfig
 
-__all__ = ["FAULT_KINDS", "DataFault", "apply_faults"]
+__all__ = ["FAULT_KINDS", "TIMING_KINDS", "DataFault", "apply_faults", "random_timing_fault"]
 
-FAULT_KINDS = ("stuck", "gap", "clip", "spike_burst", "time_jump", "duplicate_stamps")
+#: timing faults (module docstring)
+TIMING_KINDS = ("shift", "clock_offset", "jitter", "irregular", "drop_ticks", "duplicate_ticks")
+FAULT_KINDS = (
+    "refill_hold",
+    "stuck",
+    "gap",
+    "clip",
+    "spike_burst",
+    "time_jump",
+    "duplicate_stamps",
+    *TIMING_KINDS,
+)
 
 #: message field of each value a fault can change
 _FIELDS = {
     "nir": "concentration_pct_w_w",
     "flow": "mass_flow_kg_h",
     "screw_speed": "screw_speed_rpm",
+    "refilling": "refilling",
 }
+#: message fields interpolated by ``irregular`` (the others are taken from the sample before)
+_LINEAR = (
+    "concentration_pct_w_w",
+    "mass_flow_kg_h",
+    "screw_speed_rpm",
+    "hopper_mass_kg",
+    "feed_factor_g_rev",
+)
 
 
 @dataclass(frozen=True)
 class DataFault:
     """One data fault (module docstring). ``size``: spike size (value units) or time jump (s);
-    ``low``/``high``: instrument range of ``clip``; ``seed``: spike positions and signs."""
+    ``low``/``high``: instrument range of ``clip``; ``seed``: spike positions and signs, the
+    draws of the timing faults. A timing fault (:data:`TIMING_KINDS`) with the default interval
+    acts on the whole record with ``duration_s=math.inf``."""
 
     kind: str
     stream: str = "nir"
@@ -69,12 +117,19 @@ class DataFault:
     def __post_init__(self) -> None:
         if self.kind not in FAULT_KINDS:
             raise ValueError(f"fault kind must be one of {FAULT_KINDS}, got {self.kind!r}")
-        if self.stream != "nir" and self.field not in ("flow", "screw_speed"):
-            raise ValueError(f"fault field must be 'flow' or 'screw_speed', got {self.field!r}")
+        if self.stream != "nir" and self.field not in ("flow", "screw_speed", "refilling"):
+            raise ValueError(
+                f"fault field must be 'flow', 'screw_speed' or 'refilling', got {self.field!r}"
+            )
+        if self.field == "refilling" and self.kind not in TIMING_KINDS:
+            raise ValueError(f"field 'refilling' is for a timing fault, got kind {self.kind!r}")
         if not (math.isfinite(self.t_s) and self.t_s >= 0):
             raise ValueError(f"fault t_s must be >= 0, got {self.t_s!r}")
-        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
+        whole = self.kind in TIMING_KINDS and self.duration_s == math.inf
+        if not ((math.isfinite(self.duration_s) or whole) and self.duration_s > 0):
             raise ValueError(f"fault duration_s must be > 0, got {self.duration_s!r}")
+        if self.kind == "refill_hold" and (self.stream == "nir" or self.field != "flow"):
+            raise ValueError(f"refill_hold is a feeder's flow, got {self.label!r}")
         if self.kind == "clip" and not self.low < self.high:
             raise ValueError(f"fault low must be < high, got {self.low!r} >= {self.high!r}")
         if not 0 < self.fraction <= 1:
@@ -83,6 +138,14 @@ class DataFault:
             math.isfinite(self.size) and self.size != 0
         ):
             raise ValueError(f"fault size must be finite and non-zero, got {self.size!r}")
+        if self.kind == "shift" and not (self.size == round(self.size) and self.size != 0):
+            raise ValueError(f"shift size must be a non-zero whole number, got {self.size!r}")
+        if self.kind == "clock_offset" and not (math.isfinite(self.size) and self.size != 0):
+            raise ValueError(f"clock_offset size must be finite and non-zero, got {self.size!r}")
+        if self.kind == "jitter" and not (math.isfinite(self.size) and self.size > 0):
+            raise ValueError(f"jitter size must be > 0, got {self.size!r}")
+        if self.kind == "irregular" and not self.fraction < 1:
+            raise ValueError(f"irregular fraction must be < 1, got {self.fraction!r}")
 
     @property
     def value_field(self) -> str:
@@ -127,6 +190,82 @@ def _truth(fault: DataFault, t: np.ndarray, first: int, last: int) -> dict[str, 
     }
 
 
+def _isolated(rng: np.random.Generator, n: int, fraction: float) -> np.ndarray:
+    """Indices of about ``fraction`` x n isolated messages (no two adjacent; not the first)."""
+    pick = rng.random(n) < fraction
+    if n:
+        pick[0] = False
+    pick[1:] &= ~pick[:-1]  # the second of two adjacent picks is not taken
+    return np.nonzero(pick)[0]
+
+
+def _apply_timing(
+    fault: DataFault, msgs: list[Any], arrival: np.ndarray, t_all: np.ndarray
+) -> tuple[list[tuple[float, Any]], list[dict[str, Any]]]:
+    """A timing fault on the messages of its stream (in order) at arrival positions
+    ``arrival`` of the whole record, whose messages' stamps are ``t_all``: the new messages with
+    the arrival position each takes (a fraction: between two original messages), and the
+    truth."""
+    t = np.array([m.t for m in msgs], dtype=float)
+    inside = (t >= fault.t_s) & (t < fault.t_s + fault.duration_s)
+    idx = np.nonzero(inside)[0]
+    keep: list[tuple[float, Any]] = [(float(a), m) for a, m in zip(arrival, msgs)]
+    if idx.size == 0:
+        return keep, []
+    rng = np.random.default_rng(fault.seed)
+    truth = _truth(fault, t, int(idx[0]), int(idx[-1]))
+    truth["size"] = float(fault.size)
+    if fault.kind == "shift":
+        f = fault.value_field
+        vals = [getattr(m, f) for m in msgs]
+        k = int(fault.size)
+        for i in idx:
+            j = min(max(int(i) - k, 0), len(msgs) - 1)
+            keep[i] = (keep[i][0], msgs[i].model_copy(update={f: vals[j]}))
+        truth["field"] = f
+    elif fault.kind in ("clock_offset", "jitter"):
+        e = np.full(idx.size, fault.size)
+        if fault.kind == "jitter":
+            e = rng.uniform(-fault.size, fault.size, idx.size)
+        for i, d in zip(idx, e):
+            keep[i] = (keep[i][0], msgs[i].model_copy(update={"t": max(float(t[i] + d), 0.0)}))
+        lost = {int(i) for i, d in zip(idx, e) if fault.kind == "clock_offset" and t[i] + d < 0}
+        keep = [x for i, x in enumerate(keep) if i not in lost]
+        truth["n_lost"] = len(lost)
+    elif fault.kind == "drop_ticks":
+        lost = {int(i) for i in idx[_isolated(rng, idx.size, fault.fraction)]}
+        keep = [x for i, x in enumerate(keep) if i not in lost]
+        truth["n_samples"] = len(lost)
+    elif fault.kind == "duplicate_ticks":
+        twice = idx[_isolated(rng, idx.size, fault.fraction)]
+        keep += [(float(arrival[i]) + 0.5, msgs[i]) for i in twice]
+        truth["n_samples"] = int(twice.size)
+    elif fault.kind == "irregular":
+        period = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+        a, b = float(t[idx[0]]), float(t[idx[-1]])
+        steps = period * rng.uniform(1 - fault.fraction, 1 + fault.fraction, idx.size * 2 + 2)
+        tn = a + np.concatenate([[0.0], np.cumsum(steps)])
+        tn = tn[tn <= b]
+        lin = {
+            f: np.interp(tn, t, [getattr(m, f) for m in msgs])
+            for f in _LINEAR
+            if hasattr(msgs[0], f)
+        }
+        before = np.clip(np.searchsorted(t, tn, side="right") - 1, 0, len(msgs) - 1)
+        order = np.argsort(t_all, kind="stable")
+        # the arrival position of a new sample: just after the last message stamped before it
+        at = np.searchsorted(t_all[order], tn, side="right") - 1
+        pos = np.where(at >= 0, order[np.maximum(at, 0)] + 0.5, -0.5)
+        seq0 = int(msgs[idx[0]].seq)
+        made = []
+        for n, (tt, j, p) in enumerate(zip(tn, before, pos)):
+            upd = {"t": float(tt), "seq": seq0 + n, **{f: float(v[n]) for f, v in lin.items()}}
+            made.append((float(p), msgs[int(j)].model_copy(update=upd)))
+        keep = [x for i, x in enumerate(keep) if not inside[i]] + made
+        truth["n_samples"] = len(made)
+    return keep, [truth]
+
+
 def _apply_one(fault: DataFault, msgs: list[Any]) -> tuple[list[Any | None], list[dict[str, Any]]]:
     """One fault on the messages of its stream (in order). None marks a lost message."""
     t = np.array([m.t for m in msgs], dtype=float)
@@ -151,6 +290,15 @@ def _apply_one(fault: DataFault, msgs: list[Any]) -> tuple[list[Any | None], lis
         for i in after:
             out[i] = msgs[i].model_copy(update={"t": float(t[i] + fault.size)})
         return out, [_truth(fault, t, int(after[0]), int(after[0]))]
+    if fault.kind == "refill_hold":
+        refill = np.array([bool(m.refilling) for m in msgs])
+        truths = []
+        for a, b in _runs(refill):
+            held = float(vals[a - 1]) if a > 0 else float(vals[a])
+            for i in range(a, b + 1):
+                out[i] = msgs[i].model_copy(update={f: held})
+            truths.append(_truth(fault, t, a, b))
+        return out, truths
     if idx.size == 0:
         return out, []
     truth = _truth(fault, t, int(idx[0]), int(idx[-1]))
@@ -185,6 +333,18 @@ def apply_faults(
     truths: list[dict[str, Any]] = []
     for fault in faults:
         key = _stream_key(config, fault.stream)
+        if fault.kind in TIMING_KINDS:
+            rows = [m for m in out if m is not None]
+            pos = [i for i, item in enumerate(rows) if item[0] == key]
+            if not pos:
+                raise ValueError(f"fault stream {fault.stream!r} has no messages (key {key!r})")
+            t_all = np.array([m[1].t for m in rows], dtype=float)
+            made, truth = _apply_timing(fault, [rows[i][1] for i in pos], np.array(pos), t_all)
+            others = [(float(i), m) for i, m in enumerate(rows) if m[0] != key]
+            merged = sorted(others + [(a, (key, m)) for a, m in made], key=lambda x: x[0])
+            out = [m for _, m in merged]
+            truths.extend(truth)
+            continue
         pos = [i for i, item in enumerate(out) if item is not None and item[0] == key]
         if not pos:
             raise ValueError(f"fault stream {fault.stream!r} has no messages (key {key!r})")
@@ -193,3 +353,46 @@ def apply_faults(
             out[i] = None if msg is None else (key, msg)
         truths.extend(truth)
     return [m for m in out if m is not None], truths
+
+
+def random_timing_fault(
+    seed: int, feeders: Sequence[str], period_s: float = 1.0
+) -> tuple[DataFault, ...]:
+    """A timing fault of :data:`TIMING_KINDS` drawn with ``seed`` over the whole record: the kind
+    uniform; a ``shift`` of +-1..3 samples of a feeder's refill flag (half the draws) or screw
+    speed against the rest of its messages (a value shifted against its own stamp is a delay
+    of that series, which no stamp shows: for the NIR it is the in-list ``extra_delay``); a ``clock_offset`` of +-(0.5..5) s, a ``jitter`` of 0.1..0.5 periods,
+    ``irregular`` intervals of 1 +- 0.1..0.5 periods, 1..5 % of the ticks dropped or delivered
+    twice, on the NIR or a feeder (``period_s``: the sampling period). A refill flag's shift
+    comes after the feeder's ``refill_hold`` (its flow held over each refill, as the records
+    of the issue: the held value and its flag a sample or more apart)."""
+    rng = np.random.default_rng(seed)
+    kind = str(rng.choice(TIMING_KINDS))
+    streams = ["nir", *feeders]
+    stream = str(rng.choice(streams))
+    field = "flow"
+    size, fraction = 0.0, 0.3
+    if kind == "shift":  # a flag or value against the other fields of its feeder's message
+        stream = str(rng.choice(list(feeders)))
+        field = "refilling" if rng.random() < 0.5 else "screw_speed"
+        size = float(rng.choice([-3, -2, -1, 1, 2, 3]))
+    elif kind == "clock_offset":
+        size = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 5.0))
+    elif kind == "jitter":
+        size = float(rng.uniform(0.1, 0.5) * period_s)
+    elif kind == "irregular":
+        fraction = float(rng.uniform(0.1, 0.5))
+    else:
+        fraction = float(rng.uniform(0.01, 0.05))
+    fault = DataFault(
+        kind,
+        stream,
+        field,
+        duration_s=math.inf,
+        size=size,
+        fraction=fraction,
+        seed=int(rng.integers(1 << 31)),
+    )
+    if field == "refilling":
+        return (DataFault("refill_hold", stream), fault)
+    return (fault,)

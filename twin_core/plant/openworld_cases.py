@@ -391,11 +391,20 @@ def _simulate(cfg: LineConfig, duration_s: float, seed: int, **kwargs: Any) -> L
     return run
 
 
-def run_case(case: Case, setting: Setting, seed: int, duration_s: float = DURATION_S) -> CaseRun:
+def run_case(
+    case: Case,
+    setting: Setting,
+    seed: int,
+    duration_s: float = DURATION_S,
+    timing: Sequence[DataFault] = (),
+) -> CaseRun:
     """Simulate a case in a setting with a seed: the run, its messages (faults applied) and the
     truth (mechanism, side, sizes: ``effect_rms`` of the noise-free reading against the declared
     model, ``product_rms`` / ``product_mean`` of the true outlet against it, the NIR
-    ``noise_sd``; fault intervals; for a look-alike probe the fitted ``match_rms``)."""
+    ``noise_sd``; fault intervals; for a look-alike probe the fitted ``match_rms``).
+    ``timing``: a timing fault (``twin_core.plant.faults.TIMING_KINDS``, with a refill flag's
+    shift the feeder's ``refill_hold`` before it) applied to the messages after the case's
+    faults, in the truth as ``timing`` (its last fault's truth; not among the ``faults``)."""
     cfg = openworld_scenario(setting, duration_s)
     extra: dict[str, Any] = {}
     effects, open_world = list(case.effects), list(case.open_world)
@@ -418,6 +427,9 @@ def run_case(case: Case, setting: Setting, seed: int, duration_s: float = DURATI
     messages = run_messages(run, cfg)
     if case.faults:
         messages, run.faults = apply_faults(messages, case.faults, cfg)
+    if timing:
+        messages, timing_truth = apply_faults(messages, list(timing), cfg)
+        extra["timing"] = timing_truth[-1] if timing_truth else {}
     declared_outlet = run.predicted_declared() - cfg.sensor.noise.baseline_offset
     product_dev = run.outlet_true_pct_w_w[cfg.sensor.component] - declared_outlet
     name = case.truth_name()
@@ -493,6 +505,16 @@ def _overlaps(entry: Mapping[str, Any], truth: Mapping[str, Any], margin: float)
     return a - margin <= float(truth["t_end_s"]) and b + margin >= float(truth["t_start_s"])
 
 
+def _faults_flagged(report: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    """The report's ``data_quality`` entries that are faults (``action`` ``left_out``, or none
+    given), not repairs of the messages' timing."""
+    return [
+        d
+        for d in (report.get("data_quality") or [])
+        if isinstance(d, Mapping) and d.get("action", "left_out") == "left_out"
+    ]
+
+
 def _effect_outcome(status: str, claimed: Sequence[str], listed: set[str], names: set[str]) -> str:
     if any(c in names for c in claimed):
         return "right"
@@ -515,8 +537,8 @@ def score_report(report: Mapping[str, Any], truth: Mapping[str, Any]) -> dict[st
       mechanism claimed with status ``explained``), ``wrong_partial`` (claimed with another
       status), ``dont_know`` (no claim); ``none`` and ``fault`` cases: ``claim`` or
       ``no_claim``;
-    - ``fault``: ``flagged`` (a ``data_quality`` entry within ``FLAG_MARGIN_S`` of a fault
-      interval), ``status_data_quality``;
+    - ``fault``: ``flagged`` (a ``data_quality`` fault entry, not a timing repair, within
+      ``FLAG_MARGIN_S`` of a fault interval), ``status_data_quality``;
     - ``lookalike``: ``both_listed`` (a product-side and a probe-side mechanism among the
       listed), ``product_at_risk`` (True / False / None when the report lacks it),
       ``discriminating`` (a measurement named), ``lookalike_ok`` (all three).
@@ -540,7 +562,7 @@ def score_report(report: Mapping[str, Any], truth: Mapping[str, Any]) -> dict[st
         "claimed": claimed,
         "listed": sorted(listed),
         "equivalents_field": eq_field,
-        "n_data_quality": len(report.get("data_quality") or []),
+        "n_data_quality": len(_faults_flagged(report)),
     }
     if family in ("none", "fault"):
         out["outcome"] = "claim" if claimed else "no_claim"
@@ -550,7 +572,7 @@ def score_report(report: Mapping[str, Any], truth: Mapping[str, Any]) -> dict[st
     out["product_at_risk"] = None if risk is None else bool(risk)
     out["discriminating"] = _present(_flag(report, "discriminating_measurement"))
     if family == "fault":
-        dq = [d for d in (report.get("data_quality") or []) if isinstance(d, Mapping)]
+        dq = _faults_flagged(report)
         out["flagged"] = any(
             _overlaps(d, f, FLAG_MARGIN_S) for d in dq for f in truth.get("faults") or []
         )

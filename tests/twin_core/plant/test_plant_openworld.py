@@ -21,7 +21,7 @@ from test_plant import QUIET, ideal_line
 from schemas.line import NIRNoise, TracerPulse
 from twin_core.plant import EFFECTS, make_effect, simulate_line
 from twin_core.plant.blender_fv import FiniteVolumeBlender, WallFilm
-from twin_core.plant.faults import DataFault, apply_faults
+from twin_core.plant.faults import TIMING_KINDS, DataFault, apply_faults, random_timing_fault
 from twin_core.plant.messages import run_messages
 from twin_core.plant.openworld import OPEN_WORLD, make_open_world
 from twin_core.plant.openworld_cases import (
@@ -364,6 +364,68 @@ def test_clip_spike_and_time_faults(messages):
     np.testing.assert_array_equal(t[10:20], [10, 10, 12, 12, 14, 14, 16, 16, 18, 18])
     with pytest.raises(ValueError, match="fault kind"):
         DataFault("melted")
+
+
+def test_timing_faults_move_stamps_and_values_not_the_readings(messages):
+    """Timing faults (TIMING_KINDS): a shift moves one field by whole messages; a clock offset
+    moves every stamp and keeps the arrival order (stamps below 0 dropped); jitter stays within
+    its size in order; irregular sampling keeps the intervals within 1 +- fraction periods with
+    values interpolated and sequence numbers anew; dropped ticks are isolated; a re-sent tick
+    is an identical copy right after its original; a random fault is drawn from its seed."""
+    cfg, msgs = messages
+    whole = dict(duration_s=math.inf)
+
+    def flows(out):
+        return [m for k, m in out if k.endswith("/api/flow")]
+
+    def nir(out):
+        return [m for _, m in _stream(out, "/pat/", "concentration_pct_w_w")]
+
+    b = flows(msgs)
+    out, truth = apply_faults(msgs, [DataFault("shift", "api", "flow", size=2, **whole)], cfg)
+    a = flows(out)
+    assert [m.mass_flow_kg_h for m in a[2:]] == [m.mass_flow_kg_h for m in b[:-2]]
+    assert [m.t for m in a] == [m.t for m in b] and truth[0]["field"] == "mass_flow_kg_h"
+    out, truth = apply_faults(msgs, [DataFault("clock_offset", "nir", size=-2.5, **whole)], cfg)
+    t = np.array([m.t for m in nir(out)])
+    np.testing.assert_allclose(t, np.arange(3.0, 601.0) - 2.5)
+    assert truth[0]["n_lost"] == 3
+    pos = [i for i, (k, _) in enumerate(out) if "/pat/" in k]
+    pos0 = [i for i, (k, _) in enumerate(msgs) if "/pat/" in k][3:]
+    assert [p - q for p, q in zip(pos, pos0)] == [-3 * 1] * len(pos)  # same place, 3 fewer before
+    out, _ = apply_faults(msgs, [DataFault("jitter", "nir", size=0.4, seed=2, **whole)], cfg)
+    e = np.array([m.t for m in nir(out)]) - np.arange(0.0, 601.0)
+    assert np.abs(e).max() <= 0.4 and np.abs(e).max() > 0.3
+    out, truth = apply_faults(
+        msgs, [DataFault("irregular", "nir", fraction=0.4, seed=3, **whole)], cfg
+    )
+    m2 = nir(out)
+    d = np.diff([m.t for m in m2])
+    assert d.min() >= 0.6 - 1e-9 and d.max() <= 1.4 + 1e-9
+    assert [m.seq for m in m2] == list(range(len(m2))) and truth[0]["n_samples"] == len(m2)
+    c0 = np.array([m.concentration_pct_w_w for m in nir(msgs)])
+    np.testing.assert_allclose(
+        [m.concentration_pct_w_w for m in m2], np.interp([m.t for m in m2], np.arange(601.0), c0)
+    )
+    assert all(x.t <= y.t for x, y in zip([m for _, m in out], [m for _, m in out][1:]))
+    out, truth = apply_faults(
+        msgs, [DataFault("drop_ticks", "api", fraction=0.1, seed=4, **whole)], cfg
+    )
+    seq = np.array([m.seq for m in flows(out)])
+    assert np.all(np.diff(seq) <= 2) and len(b) - seq.size == truth[0]["n_samples"] > 20
+    out, truth = apply_faults(
+        msgs, [DataFault("duplicate_ticks", "api", fraction=0.1, seed=5, **whole)], cfg
+    )
+    a = flows(out)
+    twins = [i for i in range(1, len(a)) if a[i] == a[i - 1]]
+    assert len(twins) == truth[0]["n_samples"] == len(a) - len(b) > 20
+    assert random_timing_fault(7, ["api", "excipient"]) == random_timing_fault(
+        7, ["api", "excipient"]
+    )
+    kinds = {f[-1].kind for f in (random_timing_fault(s, ["api"]) for s in range(60))}
+    assert kinds == set(TIMING_KINDS)
+    with pytest.raises(ValueError, match="whole number"):
+        DataFault("shift", "api", size=1.5, **whole)
 
 
 # ---------------------------------------------------------------------------------------------
