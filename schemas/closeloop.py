@@ -26,6 +26,7 @@ from schemas.base import Finite, Ident, Message, NonNegative, StrictModel, Text
 
 __all__ = [
     "CandidateScore",
+    "ClockOffsetEstimate",
     "CloseLoopReport",
     "DataQualityFlag",
     "Decision",
@@ -64,14 +65,46 @@ class EffectSpec(StrictModel):
 
 
 class DataQualityFlag(StrictModel):
-    """A data fault found before the fit (``twin_core.closeloop.quality``); its samples were
-    left out of the identification."""
+    """A data fault found before the fit (``twin_core.closeloop.quality``; ``action``
+    ``left_out``: its samples were left out of the identification), or the timing of the
+    plant's messages repaired or noted (``repaired`` / ``noted``: a refill's hold, missing or
+    re-sent ticks, jitter, irregular sampling, a clock offset; no fault, the status is not
+    ``data_quality`` for them)."""
 
-    kind: Literal["stuck", "clipping", "spike_burst", "gap", "time_jump", "duplicate_stamp"]
+    kind: Literal[
+        "stuck",
+        "clipping",
+        "spike_burst",
+        "gap",
+        "time_jump",
+        "duplicate_stamp",
+        "refill_hold",
+        "missing_tick",
+        "duplicate_tick",
+        "jitter",
+        "irregular_sampling",
+        "clock_offset",
+    ]
     series: str = Field(description="nir or <feeder>:flow")
     t_start_s: Finite
     t_end_s: Finite
     n_samples: int = Field(ge=0)
+    detail: str = Field("", description="what was seen there (values, lengths, stamps)")
+    action: Literal["left_out", "repaired", "noted"] = "left_out"
+
+
+class ClockOffsetEstimate(StrictModel):
+    """A source whose clock is off the record's common clock, estimated from the arrival order
+    of the messages (``twin_core.closeloop.quality.estimate_clock_offsets``) and corrected by
+    the record: stamps minus true times, s, with the interval the arrival order allows."""
+
+    series: str
+    offset_s: Finite
+    low_s: Finite
+    high_s: Finite
+    n_messages: int = Field(ge=0)
+    reference: str = Field(description="the stream whose clock the others share")
+    applied: bool = True
 
 
 class _Explanation(StrictModel):
@@ -271,6 +304,9 @@ class CloseLoopReport(StrictModel):
     sensor_component: str
     status: Status = Field(description="see schemas.closeloop.Status")
     data_quality: list[DataQualityFlag] = Field(default_factory=list)
+    clock_offsets: list[ClockOffsetEstimate] = Field(
+        default_factory=list, description="sources put back on the common clock"
+    )
     effects: list[EffectFound]
     possible_explanations: list[PossibleExplanation] = Field(
         default_factory=list,

@@ -23,24 +23,70 @@ from twin_core.plant.model import LineInputs
 class StreamStamps:
     """The raw time stamps of one stream's messages in arrival order (``t_s``, s) and their
     per-publisher sequence numbers (``seq``, or None): what the data-quality check reads time
-    jumps, duplicate stamps and dropouts from (``twin_core.closeloop.quality``)."""
+    jumps, duplicate stamps and dropouts from (``twin_core.closeloop.quality``).
+
+    ``arrival``: each message's position in the arrival order of the whole record (all
+    streams; None: unknown), what a clock offset between sources is estimated from
+    (``twin_core.closeloop.quality.estimate_clock_offsets``); ``resent``: stamps of the
+    messages received twice (same stamp, sequence number and values) whose copies the record
+    dropped."""
 
     t_s: np.ndarray
     seq: np.ndarray | None = None
+    arrival: np.ndarray | None = None
+    resent: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         self.t_s = np.asarray(self.t_s, dtype=float)
-        if self.seq is not None:
-            self.seq = np.asarray(self.seq, dtype=np.int64)
-            if self.seq.shape != self.t_s.shape:
-                raise ValueError(
-                    f"seq must have the shape of t_s {self.t_s.shape}, got {self.seq.shape}"
-                )
+        self.resent = np.asarray(self.resent, dtype=float)
+        for name in ("seq", "arrival"):
+            v = getattr(self, name)
+            if v is not None:
+                v = np.asarray(v, dtype=np.int64)
+                if v.shape != self.t_s.shape:
+                    raise ValueError(
+                        f"{name} must have the shape of t_s {self.t_s.shape}, got {v.shape}"
+                    )
+                setattr(self, name, v)
 
     def between(self, t0: float, t1: float) -> StreamStamps:
         """The stamps with t0 <= t <= t1."""
         m = (self.t_s >= t0) & (self.t_s <= t1)
-        return StreamStamps(self.t_s[m], None if self.seq is None else self.seq[m])
+        r = self.resent
+        return StreamStamps(
+            self.t_s[m],
+            None if self.seq is None else self.seq[m],
+            None if self.arrival is None else self.arrival[m],
+            r[(r >= t0) & (r <= t1)],
+        )
+
+
+@dataclass(frozen=True)
+class ClockOffset:
+    """A source whose clock is off the record's common clock: its stamps minus the true times,
+    ``offset_s`` (s), and the interval [``low_s``, ``high_s``] the arrival order allows
+    (``twin_core.closeloop.quality.estimate_clock_offsets``), from ``n_messages`` messages
+    against the ``reference`` stream; ``applied``: the record put the source back on the
+    common clock."""
+
+    series: str
+    offset_s: float
+    low_s: float
+    high_s: float
+    n_messages: int
+    reference: str
+    applied: bool = True
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "series": self.series,
+            "offset_s": float(self.offset_s),
+            "low_s": float(self.low_s),
+            "high_s": float(self.high_s),
+            "n_messages": int(self.n_messages),
+            "reference": self.reference,
+            "applied": bool(self.applied),
+        }
 
 
 @dataclass
@@ -49,6 +95,9 @@ class RunData:
 
     ``stamps``: the raw message stamps per stream (``nir``, ``<feeder>:flow``) when the record
     has them (a recording, the live twin), for the data-quality check.
+
+    ``clock_offsets``: the sources whose clock the record found off the common clock and
+    corrected (``twin_core.closeloop.record.LineRecord``), for the report.
 
     ``noise_span_s``: plant time over which the probe's 1/f noise has its declared standard
     deviation (``schemas.line.NIRNoise.pink_sd``) when this record is a segment of a longer run
@@ -64,6 +113,7 @@ class RunData:
     name: str = "run"
     stamps: dict[str, StreamStamps] = field(default_factory=dict)
     noise_span_s: float | None = None
+    clock_offsets: list[ClockOffset] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         if self.noise_span_s is not None and not self.noise_span_s > 0:
@@ -118,7 +168,16 @@ class RunData:
         ev = [e for e in self.events if t0 <= float(e["t_s"]) < t1]
         t_last = float(self.t_s[m][-1])
         stamps = {k: v.between(t0, t_last) for k, v in self.stamps.items()}
-        return RunData(self.t_s[m], self.measured[m], sub, ev, self.name, stamps, self.noise_span_s)
+        return RunData(
+            self.t_s[m],
+            self.measured[m],
+            sub,
+            ev,
+            self.name,
+            stamps,
+            self.noise_span_s,
+            list(self.clock_offsets),
+        )
 
 
 @dataclass

@@ -36,12 +36,39 @@ the seed's noise gives no flags: measured in ``benchmarks/closeloop_quality.py``
   numbers advance by their usual step (the clock jumped, the data did not stop): every later
   sample of the series is misaligned and left out.
 - ``duplicate_stamp``: a stamp repeated (two messages for one instant).
+
+Each flag says what it saw and where (``detail``: the values, lengths and stamps behind it).
+
+A series is judged with its context: timing of a plant's messages that is not a fault of the
+readings is repaired and noted, never flagged (``DataQuality.notes``, ``action`` ``repaired``
+or ``noted``; they do not make the status ``data_quality``):
+
+- ``refill_hold``: a feeder's flow held over a refill (a loss-in-weight controller freezes
+  its load-cell flow while the hopper fills) whose hold starts or ends up to
+  ``max_skew_s`` off the refill flag (flag and value from different PLC scans): the
+  refill's, not a stuck sensor;
+- ``missing_tick``: fewer than ``min_gap_samples`` consecutive messages missing (sequence
+  numbers skip): the tick held for a flow, left empty for the NIR; counted per source;
+- ``duplicate_tick``: a message received twice (same stamp, sequence number and values):
+  the copy dropped by the record; counted per source;
+- ``jitter``: stamps scattered around the source's regular grid (by up to its period): put
+  on the nearest tick; time jumps and gaps are judged against that scatter (a jump is a
+  step beyond four robust standard deviations of the stamp intervals' own scatter and half
+  a period; a gap is what the sequence numbers skip);
+- ``irregular_sampling``: stamps that wander off any regular grid (their offset from the
+  sequence numbers' grid spreads over more than two periods): each reading put on its
+  nearest tick;
+- ``clock_offset``: a source's clock off the common clock (:func:`estimate_clock_offsets`,
+  from the arrival order of the messages): the record put the source back on the common
+  clock; reported with its interval (``DataQuality.clock_offsets``), not left to the
+  identification as a transport delay.
 """
 
 from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,14 +76,30 @@ import numpy as np
 from scipy import stats
 from scipy.ndimage import median_filter
 
-from twin_core.closeloop.data import RunData, StreamStamps
+from twin_core.closeloop.data import ClockOffset, RunData, StreamStamps
 from twin_core.plant.model import LineModel, rtd_kernel
 from twin_core.plant.nir import noise_sd
 from twin_core.rtd.outliers import hampel
 
-__all__ = ["DataFlag", "DataQuality", "QualityOptions", "check_data_quality", "lot_span_s"]
+__all__ = [
+    "DataFlag",
+    "DataQuality",
+    "QualityOptions",
+    "check_data_quality",
+    "estimate_clock_offsets",
+    "lot_span_s",
+]
 
 KINDS = ("stuck", "clipping", "spike_burst", "gap", "time_jump", "duplicate_stamp")
+#: repairs and notes of the timing of a plant's messages (module docstring)
+NOTE_KINDS = (
+    "refill_hold",
+    "missing_tick",
+    "duplicate_tick",
+    "jitter",
+    "irregular_sampling",
+    "clock_offset",
+)
 
 #: name of the NIR reading among the checked series
 NIR = "nir"
@@ -64,13 +107,18 @@ NIR = "nir"
 
 @dataclass(frozen=True)
 class DataFlag:
-    """A data fault: kind, series (``nir``, ``<feeder>:flow``, ``<feeder>:screw_speed``), interval and sample count."""
+    """A data fault or a repair: kind, series (``nir``, ``<feeder>:flow``,
+    ``<feeder>:screw_speed``), interval and sample count; ``detail``: what was seen there;
+    ``action``: ``left_out`` (a fault: its samples left out), ``repaired`` or ``noted`` (timing
+    of the messages, module docstring)."""
 
     kind: str
     series: str
     t_start_s: float
     t_end_s: float
     n_samples: int
+    detail: str = ""
+    action: str = "left_out"
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -79,6 +127,8 @@ class DataFlag:
             "t_start_s": float(self.t_start_s),
             "t_end_s": float(self.t_end_s),
             "n_samples": int(self.n_samples),
+            "detail": self.detail,
+            "action": self.action,
         }
 
 
@@ -95,6 +145,9 @@ class QualityOptions:
     rough_ratio: float = 10.0
     min_gap_samples: int = 3
     false_alarm: float = 1e-3
+    #: the skew (s) between a value and its flag that the data path makes plausible (PLC scans,
+    #: historian stamps): a hold that touches a refill within it is the refill's
+    max_skew_s: float = 5.0
     #: the NIR's range (% w/w): readings at or beyond it are clipped; None: from the data
     nir_range: tuple[float, float] | None = None
 
@@ -111,14 +164,19 @@ class QualityOptions:
 
 @dataclass
 class DataQuality:
-    """The flags of a record and the samples left out of the identification."""
+    """The flags of a record and the samples left out of the identification; the repairs and
+    notes of its timing (``notes``, module docstring) and the clock offsets the record
+    corrected."""
 
     flags: list[DataFlag]
     exclude: np.ndarray
     per_series: dict[str, int] = field(default_factory=dict)
+    notes: list[DataFlag] = field(default_factory=list)
+    clock_offsets: list[ClockOffset] = field(default_factory=list)
 
     def to_list(self) -> list[dict[str, Any]]:
-        return [f.to_dict() for f in self.flags]
+        """Flags, then notes (their ``action`` tells them apart)."""
+        return [f.to_dict() for f in self.flags] + [n.to_dict() for n in self.notes]
 
 
 def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -305,29 +363,238 @@ def spike_bursts(outliers: np.ndarray, window: int, k: int) -> list[tuple[int, i
     return out
 
 
+def _stamp_excess(
+    t: np.ndarray, seq: np.ndarray | None, period_s: float
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Each stamp interval's excess over what the sequence numbers say (without them: over the
+    nearest whole number of periods), the number of periods each interval spans, and the
+    tolerance of a time jump: max(half a period, 4 robust SD of the excess), the stream's own
+    stamp scatter (jitter, irregular sampling) is not a jump."""
+    d = np.diff(t)
+    if seq is not None:
+        dseq = np.diff(seq)
+        step = max(int(np.median(dseq)), 1) if dseq.size else 1
+        periods = dseq / step
+    else:
+        periods = np.maximum(np.round(d / period_s), 1.0)
+    x = d - period_s * periods
+    ok = d != 0  # a repeated stamp is told apart on its own
+    scale = 0.0
+    if ok.sum() >= 10:
+        xo = x[ok]
+        scale = 1.4826 * float(np.median(np.abs(xo - np.median(xo))))
+    return x, periods, max(0.5 * period_s, 4.0 * scale)
+
+
 def stamp_flags(series: str, stamps: StreamStamps, period_s: float) -> list[DataFlag]:
     """Duplicate stamps, time jumps and gaps of one stream's message stamps (module
-    docstring), in arrival order."""
+    docstring), in arrival order. A time jump is a stamp interval off what the sequence numbers
+    say by more than the stream's own scatter allows (:func:`_stamp_excess`) or a stamp going
+    backwards; a gap is where the sequence numbers skip (without them: stamps more than 1.5
+    periods apart)."""
     t = np.asarray(stamps.t_s, dtype=float)
     if t.size < 2:
         return []
     d = np.diff(t)
     seq = None if stamps.seq is None else np.asarray(stamps.seq, dtype=np.int64)
-    dseq = np.diff(seq) if seq is not None else None
+    x, periods, tol = _stamp_excess(t, seq, period_s)
     flags: list[DataFlag] = []
     for a, b in true_runs(d == 0):
-        flags.append(DataFlag("duplicate_stamp", series, float(t[a]), float(t[b]), b - a))
-    for i in np.flatnonzero(d < 0):
-        flags.append(DataFlag("time_jump", series, float(t[i + 1]), float(t[i]), 1))
-    seq_step = int(np.median(dseq)) if dseq is not None else None
-    for i in np.flatnonzero(d > 1.5 * period_s):
-        missing = int(round(d[i] / period_s)) - 1
-        if dseq is not None and dseq[i] == seq_step:
-            flags.append(DataFlag("time_jump", series, float(t[i]), float(t[i + 1]), 1))
-        else:
-            a, b = float(t[i] + period_s), float(t[i + 1] - period_s)
-            flags.append(DataFlag("gap", series, a, b, missing))
+        flags.append(
+            DataFlag(
+                "duplicate_stamp",
+                series,
+                float(t[a]),
+                float(t[b]),
+                b - a,
+                f"{b - a + 1} messages stamped {t[a]:.3f} s",
+            )
+        )
+    jump = (d < 0) | ((np.abs(x) > tol) & (d != 0))
+    for i in np.flatnonzero(jump):
+        lo, hi = sorted((float(t[i]), float(t[i + 1])))
+        flags.append(
+            DataFlag(
+                "time_jump",
+                series,
+                lo,
+                hi,
+                1,
+                f"stamps {t[i]:.3f} -> {t[i + 1]:.3f} s where the sequence numbers say "
+                f"{period_s * periods[i]:.3f} s later (scatter allows +-{tol:.2f} s)",
+            )
+        )
+    gap = (periods > 1.5) if seq is not None else (d > 1.5 * period_s)
+    for i in np.flatnonzero(gap & ~jump):
+        missing = int(round(periods[i])) - 1 if seq is not None else int(round(d[i] / period_s)) - 1
+        if missing < 1:
+            continue
+        a, b = float(t[i] + period_s), float(t[i + 1] - period_s)
+        flags.append(
+            DataFlag(
+                "gap",
+                series,
+                a,
+                b,
+                missing,
+                f"{missing} messages missing between the stamps {t[i]:.3f} and {t[i + 1]:.3f} s",
+            )
+        )
     return flags
+
+
+def stamp_notes(
+    series: str, stamps: StreamStamps, period_s: float, min_gap_samples: int
+) -> list[DataFlag]:
+    """The timing of one stream that is repaired, not flagged (module docstring): missing
+    ticks (gaps shorter than ``min_gap_samples``), re-sent messages the record dropped, stamp
+    jitter, irregular sampling."""
+    t = np.asarray(stamps.t_s, dtype=float)
+    notes: list[DataFlag] = []
+    if stamps.resent.size:
+        r = stamps.resent
+        notes.append(
+            DataFlag(
+                "duplicate_tick",
+                series,
+                float(r.min()),
+                float(r.max()),
+                int(r.size),
+                f"{r.size} messages received twice (same stamp, sequence number and values) "
+                f"between {r.min():.1f} and {r.max():.1f} s: the copies dropped",
+                "repaired",
+            )
+        )
+    if t.size < 10:
+        return notes
+    seq = None if stamps.seq is None else np.asarray(stamps.seq, dtype=np.int64)
+    d = np.diff(t)
+    x, periods, tol = _stamp_excess(t, seq, period_s)
+    small = [
+        i
+        for i in np.flatnonzero(periods > 1.5 if seq is not None else d > 1.5 * period_s)
+        if 1 <= int(round(periods[i] if seq is not None else d[i] / period_s)) - 1 < min_gap_samples
+        and abs(x[i]) <= tol
+    ]
+    if small:
+        n = sum(int(round(periods[i] if seq is not None else d[i] / period_s)) - 1 for i in small)
+        what = "left empty" if series == NIR else "held from the tick before"
+        notes.append(
+            DataFlag(
+                "missing_tick",
+                series,
+                float(t[small[0]] + period_s),
+                float(t[small[-1] + 1] - period_s),
+                n,
+                f"{n} ticks missing in {len(small)} places of fewer than {min_gap_samples} "
+                f"(sequence numbers skip), {what}",
+                "repaired",
+            )
+        )
+    # the stamps' wander off the sequence numbers' grid, clock jumps left out
+    ok = (np.abs(x) <= tol) & (d != 0)
+    wander = np.concatenate([[0.0], np.cumsum(np.where(ok, x, 0.0))])
+    wander -= np.median(wander)
+    spread = float(np.quantile(wander, 0.995) - np.quantile(wander, 0.005))
+    dd = d[ok & (periods == 1)] if seq is not None else d[ok]
+    if spread > 2.0 * period_s and seq is not None:
+        notes.append(
+            DataFlag(
+                "irregular_sampling",
+                series,
+                float(t[0]),
+                float(t[-1]),
+                int(t.size),
+                f"stamps wander {spread:.1f} s off a regular {period_s:g} s grid, intervals "
+                f"{dd.min():.2f}-{dd.max():.2f} s: each reading on its nearest tick",
+                "repaired",
+            )
+        )
+    elif np.quantile(np.abs(wander), 0.99) > 0.05 * period_s:
+        j = float(np.quantile(np.abs(wander), 0.99))
+        notes.append(
+            DataFlag(
+                "jitter",
+                series,
+                float(t[0]),
+                float(t[-1]),
+                int(t.size),
+                f"stamps scatter up to {j:.2f} s (99 %) around a regular {period_s:g} s grid: "
+                "each reading on its nearest tick",
+                "repaired",
+            )
+        )
+    return notes
+
+
+def _phase(t: np.ndarray, period_s: float) -> tuple[float, float]:
+    """Circular mean of the stamps modulo the period, in [0, period), and its resultant
+    length (1: every stamp on one grid; ~0: no grid)."""
+    z = np.exp(2j * np.pi * np.asarray(t, dtype=float) / period_s)
+    m = complex(np.mean(z)) if z.size else 0j
+    return float((np.angle(m) / (2 * np.pi) * period_s) % period_s), float(abs(m))
+
+
+def _order_interval(s: StreamStamps, r: StreamStamps) -> tuple[float, float, int]:
+    """Bounds of stream ``s``'s clock minus stream ``r``'s from the arrival order: a message
+    of ``s`` stamped s_i that arrived between messages of ``r`` stamped r_lo and r_hi was made
+    between those instants, so its offset lies in [s_i - r_hi, s_i - r_lo]; the medians of the
+    bounds over the messages (robust to jitter and to a few late messages), and how many."""
+    ra = np.asarray(r.arrival)
+    order = np.argsort(ra, kind="stable")
+    ra, rt = ra[order], np.asarray(r.t_s)[order]
+    k = np.searchsorted(ra, np.asarray(s.arrival), side="left")
+    ok = (k > 0) & (k < ra.size)
+    if not ok.any():
+        return -math.inf, math.inf, 0
+    st = np.asarray(s.t_s)[ok]
+    lo = st - rt[k[ok]]
+    hi = st - rt[k[ok] - 1]
+    return float(np.median(lo)), float(np.median(hi)), int(ok.sum())
+
+
+def estimate_clock_offsets(
+    stamps: Mapping[str, StreamStamps], period_s: float, margin: float = 0.1
+) -> list[ClockOffset]:
+    """Sources whose clock is off the common clock of the record, from the arrival order of
+    the messages (each stream's ``arrival``).
+
+    Against a reference stream R, a stream S's offset lies in the interval of
+    :func:`_order_interval` (one period wide for sources sampled on one grid), widened by
+    ``margin`` periods. The reference is the stream with which most streams agree (intervals
+    holding 0; ties: the first stream): the clock most sources share. A stream whose interval
+    excludes 0 is off: its offset is the value in (low, high] that has the stream's own sample
+    phase against the reference's (the circular mean of the stamps modulo the period; on a
+    tie, the upper end: a source's message arrives after the reference's of the same instant),
+    or the interval's middle when its stamps have no phase (irregular or heavily jittered).
+    The arrival order resolves an offset to a period: a sub-period offset is not reported.
+    Streams without ``arrival`` are left out."""
+    names = [k for k, v in stamps.items() if v.arrival is not None and v.t_s.size >= 10]
+    if len(names) < 2:
+        return []
+    m = margin * period_s
+    iv = {(a, b): _order_interval(stamps[a], stamps[b]) for a in names for b in names if a != b}
+
+    def agree(ref: str) -> int:
+        return sum(1 for s in names if s == ref or iv[(s, ref)][0] - m <= 0 <= iv[(s, ref)][1] + m)
+
+    ref = max(names, key=lambda r: (agree(r), -names.index(r)))
+    p_ref, len_ref = _phase(stamps[ref].t_s, period_s)
+    out = []
+    for s in names:
+        if s == ref:
+            continue
+        lo, hi, n = iv[(s, ref)]
+        if not math.isfinite(lo) or lo - m <= 0 <= hi + m:
+            continue
+        p_s, len_s = _phase(stamps[s].t_s, period_s)
+        if min(len_s, len_ref) >= 0.5:
+            dphi = (p_s - p_ref) % period_s
+            off = dphi + period_s * math.floor((hi + 1e-6 * period_s - dphi) / period_s)
+        else:
+            off = 0.5 * (lo + hi)
+        out.append(ClockOffset(s, float(off), lo - m, hi + m, n, ref))
+    return out
 
 
 def lot_span_s(model: LineModel, dt_s: float) -> float:
@@ -352,6 +619,8 @@ class _Checker:
         self.span = lot_span_s(model, self.dt)
         #: per series, the (t_start, t_end) of its stamp gaps (samples held over, not stuck)
         self.gaps: dict[str, list[tuple[float, float]]] = {}
+        #: repairs and notes of the messages' timing (module docstring)
+        self.notes: list[DataFlag] = []
 
     def in_gap(self, series: str, a: int, b: int) -> bool:
         """Whether samples [a, b) are a stamp gap of the series (the value held over it and
@@ -361,11 +630,20 @@ class _Checker:
             g0 - self.dt <= ta and tb <= g1 + self.dt for g0, g1 in self.gaps.get(series, [])
         )
 
-    def flag(self, kind: str, series: str, a: int, b: int, n: int, reach: float | None) -> None:
-        """Flag samples [a, b) of a series on the record's grid; leave out the outlet samples
-        from a to b + ``reach`` s (None: none)."""
+    def flag(
+        self,
+        kind: str,
+        series: str,
+        a: int,
+        b: int,
+        n: int,
+        reach: float | None,
+        detail: str = "",
+    ) -> None:
+        """Flag samples [a, b) of a series on the record's grid (``detail``: what was seen);
+        leave out the outlet samples from a to b + ``reach`` s (None: none)."""
         t = self.t
-        self.flags.append(DataFlag(kind, series, float(t[a]), float(t[b - 1]), int(n)))
+        self.flags.append(DataFlag(kind, series, float(t[a]), float(t[b - 1]), int(n), detail))
         if reach is not None:
             self.exclude |= (t >= t[a]) & (t <= t[b - 1] + reach)
 
@@ -382,7 +660,7 @@ class _Checker:
             for a, b in true_runs(expected & ~finite):
                 n_missing = int(expected[a:b].sum())
                 if n_missing >= self.opt.min_gap_samples:
-                    self.flag("gap", NIR, a, b, n_missing, 0.0)
+                    self.flag("gap", NIR, a, b, n_missing, 0.0, f"{n_missing} readings missing")
         idx = np.flatnonzero(finite)
         x = y[idx]
         pred = self.model.predict(self.data.inputs)[idx]
@@ -392,11 +670,15 @@ class _Checker:
         window = max(self.opt.burst_windows)
         for a, b in censored_stretches(x, at_clip, levels, sigma, window):
             clip_mask[a:b] = True
-            self.flag("clipping", NIR, idx[a], idx[b - 1] + 1, int(at_clip[a:b].sum()), 0.0)
+            n_at = int(at_clip[a:b].sum())
+            lv = ", ".join(f"{v:.3f}" for v in levels)
+            self.flag("clipping", NIR, idx[a], idx[b - 1] + 1, n_at, 0.0,
+                      f"{n_at} readings at the clip level {lv} % w/w, censored around them")  # fmt: skip
         for a, b in stuck_runs(x, self.opt, exempt_zero=False):
             if clip_mask[a:b].any():
                 continue
-            self.flag("stuck", NIR, idx[a], idx[b - 1] + 1, b - a, 0.0)
+            self.flag("stuck", NIR, idx[a], idx[b - 1] + 1, b - a, 0.0,
+                      f"{b - a} identical readings {x[a]:.4f} % w/w")  # fmt: skip
         # outliers and roughness of the residual of the declared model: the tracer peaks'
         # own shape (which also hides an outlier on a peak from a Hampel window on the
         # reading) is the model's, not the noise's
@@ -411,7 +693,10 @@ class _Checker:
             hot[a:b] = True
         gap = min(self.opt.burst_windows)
         for a, b in _merge_runs(true_runs(hot), gap):
-            self.flag("spike_burst", NIR, idx[a], idx[b - 1] + 1, b - a, 0.0)
+            n_out = int(out[a:b].sum())
+            self.flag("spike_burst", NIR, idx[a], idx[b - 1] + 1, b - a, 0.0,
+                      f"{n_out} outliers of the declared model's residual in {b - a} readings "
+                      "or a stretch rougher than the noise")  # fmt: skip
 
     def flows(self) -> None:
         """Every feeder's reported flow and screw speed: stuck runs (not while refilling),
@@ -440,22 +725,79 @@ class _Checker:
         feeder is back in gravimetric mode (a screw speed in volumetric mode), so a run that
         starts in a refill is not stuck."""
         runs = stuck_runs(q, self.opt, exempt_zero=True)
+        t = self.t
         for a, b in runs:
             if refill is not None and refill.size:
-                if refill[a:b].all() or (held and refill[a:b].any()):
+                if held and refill[a:b].any():
+                    continue
+                touched = self.refill_of(refill, a, b)
+                if touched is not None:
+                    self.note_hold(name, q, refill, a, b, touched)
                     continue
             if self.in_gap(name, a, b):
                 continue
-            self.flag("stuck", name, a, b, b - a, reach)
+            self.flag("stuck", name, a, b, b - a, reach,
+                      f"{b - a} identical values {q[a]:.4g} from {t[a]:.1f} to {t[b - 1]:.1f} s"
+                      + self.refill_context(refill, a, b))  # fmt: skip
         if np.ptp(q) > 0:
             for a, b in clipped_runs(q, self.opt, None):
                 if q[a] == 0.0 or any(a >= s and b <= e for s, e in runs):
                     continue
-                self.flag("clipping", name, a, b, b - a, reach)
+                self.flag("clipping", name, a, b, b - a, reach,
+                          f"{b - a} values at the series' extreme {q[a]:.4g}")  # fmt: skip
         res = hampel(q, variant="seed")
         rate = max(res.count / q.size, 1e-4)
         for a, b, n_out in burst_runs(res.mask, rate, self.opt):
-            self.flag("spike_burst", name, a, b, n_out, reach)
+            self.flag("spike_burst", name, a, b, n_out, reach,
+                      f"{n_out} Hampel outliers in {b - a} samples (background rate {rate:.1e})")  # fmt: skip
+
+    def refill_of(self, refill: np.ndarray, a: int, b: int) -> tuple[int, int] | None:
+        """The refill [start, end) whose hold the run [a, b) of identical values is: it
+        overlaps the refill flag and starts and ends within ``max_skew_s`` of it (module
+        docstring, ``refill_hold``); None: no such refill."""
+        skew = int(math.floor(self.opt.max_skew_s / self.dt + 1e-9))
+        for s, e in true_runs(refill):
+            if s < b and a < e and a >= s - skew and b <= e + skew:
+                return s, e
+        return None
+
+    def refill_context(self, refill: np.ndarray | None, a: int, b: int) -> str:
+        """Words on the refills next to a stuck run (why it is not a refill's hold)."""
+        if refill is None or not refill.size:
+            return ""
+        near = [(s, e) for s, e in true_runs(refill) if s < b + 60 and a < e + 60]
+        if not near:
+            return ""
+        s, e = near[0]
+        return (f"; the refill flagged {self.t[s]:.1f}-{self.t[e - 1]:.1f} s is more than "
+                f"{self.opt.max_skew_s:g} s from its ends")  # fmt: skip
+
+    def note_hold(
+        self, name: str, q: np.ndarray, refill: np.ndarray, a: int, b: int, r: tuple[int, int]
+    ) -> None:
+        """Note a run of identical values that is a refill's hold (:meth:`refill_of`)."""
+        s, e = r
+        t = self.t
+
+        def side(n: int, where: str) -> str:
+            if n == 0:
+                return f"{where} with it"
+            return f"{where} {abs(n)} sample{'s' if abs(n) > 1 else ''} {'before' if n < 0 else 'after'} it"
+
+        self.notes.append(
+            DataFlag(
+                "refill_hold",
+                name,
+                float(t[a]),
+                float(t[b - 1]),
+                b - a,
+                f"value held at {q[a]:.4g} for {b - a} samples ({t[a]:.1f}-{t[b - 1]:.1f} s) over "
+                f"the refill flagged {t[s]:.1f}-{t[e - 1]:.1f} s: starts {side(a - s, '')}, "
+                f"ends {side(b - e, '')}; the refill's hold (skew <= {self.opt.max_skew_s:g} s), "
+                "not a stuck sensor",
+                "noted",
+            )
+        )
 
     def stamps(self) -> None:
         """Duplicates, time jumps and gaps of the raw message stamps (when the record has
@@ -463,6 +805,9 @@ class _Checker:
         period = {NIR: self.model.config.sensor.sample_period_s}
         for series, st in self.data.stamps.items():
             flags = stamp_flags(series, st, period.get(series, self.dt))
+            self.notes += stamp_notes(
+                series, st, period.get(series, self.dt), self.opt.min_gap_samples
+            )
             reach = 0.0 if series == NIR else self.span
             for f in flags:
                 if f.kind == "gap" and f.n_samples < self.opt.min_gap_samples:
@@ -483,8 +828,25 @@ def check_data_quality(
     c.stamps()
     c.nir()
     c.flows()
+    for co in data.clock_offsets:
+        st = data.stamps.get(co.series)
+        t0, t1 = (float(st.t_s.min()), float(st.t_s.max())) if st and st.t_s.size else (0.0, 0.0)
+        c.notes.append(
+            DataFlag(
+                "clock_offset",
+                co.series,
+                t0,
+                t1,
+                co.n_messages,
+                f"stamps {co.offset_s:+.2f} s [{co.low_s:+.2f}, {co.high_s:+.2f}] off the clock "
+                f"of {co.reference} (arrival order of {co.n_messages} messages)"
+                + (": put back on it" if co.applied else ""),
+                "repaired" if co.applied else "noted",
+            )
+        )
     flags = sorted(c.flags, key=lambda f: (f.t_start_s, f.series, f.kind))
+    notes = sorted(c.notes, key=lambda f: (f.t_start_s, f.series, f.kind))
     per: dict[str, int] = {}
     for f in flags:
         per[f.series] = per.get(f.series, 0) + 1
-    return DataQuality(flags, c.exclude, per)
+    return DataQuality(flags, c.exclude, per, notes, list(data.clock_offsets))

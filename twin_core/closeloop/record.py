@@ -17,6 +17,15 @@ bus and no file format.
 - The raw stamps (and sequence numbers) of every stream's messages are kept in arrival order
   for the data-quality check (``twin_core.closeloop.quality``: time jumps, duplicate stamps,
   dropouts), which the tick grid would hide.
+- Every message's place in the arrival order of the record is kept with its stamp; a message
+  received twice (same stamp, sequence number and values as the stream's one before) is
+  dropped and its stamp kept (``StreamStamps.resent``, noted by the data-quality check).
+- Offline (:meth:`LineRecord.from_messages`) a source whose clock is off the others' is put
+  back on the common clock before its samples are placed on the ticks: the offsets are
+  estimated from the arrival order (``twin_core.closeloop.quality.estimate_clock_offsets``)
+  and reported (``RunData.clock_offsets``); the raw stamps are kept for the data-quality check.
+- Two readings of a stream on one tick (jitter, irregular sampling): the NIR keeps the one
+  stamped nearer the tick.
 - Refill state comes from the feeders' ``refilling`` flags only: ``refill_start`` /
   ``refill_stop`` events on the bus are not read; the events of a window carry refill events at
   the flags' edges instead.
@@ -31,8 +40,9 @@ from typing import Any
 import numpy as np
 
 from schemas.line import TracerPulse
-from twin_core.closeloop.data import RunData, StreamStamps
+from twin_core.closeloop.data import ClockOffset, RunData, StreamStamps
 from twin_core.closeloop.quality import NIR as NIR_STREAM
+from twin_core.closeloop.quality import estimate_clock_offsets
 from twin_core.online.inlet import FeederSample, InletAligner, event_record, tracer_pulse
 from twin_core.plant.model import LineInputs
 
@@ -73,14 +83,39 @@ class LineRecord:
         self._meas: dict[int, float] = {}
         self._tracers: dict[tuple[float, str], TracerPulse] = {}
         self._events: list[dict[str, Any]] = []
-        #: raw (t, seq) of each stream's messages in arrival order (``nir``, ``<feeder>:flow``)
-        self._stamps: dict[str, list[tuple[float, int]]] = {}
+        #: raw (t, seq, arrival) of each stream's messages in arrival order (``nir``,
+        #: ``<feeder>:flow``)
+        self._stamps: dict[str, list[tuple[float, int, int]]] = {}
+        #: stamps of the messages received twice (the copies dropped), per stream
+        self._resent: dict[str, list[float]] = {}
+        #: the last message of each stream (stamp, seq, values), to tell a re-sent copy
+        self._last: dict[str, tuple[Any, ...]] = {}
+        #: messages received so far (the arrival position of the next one)
+        self._arrived = 0
+        #: distance of each NIR reading's stamp from its tick (the nearer one is kept)
+        self._meas_dist: dict[int, float] = {}
+        #: per stream, the clock offset (s) subtracted from its stamps before placing them
+        self.clock_offsets: dict[str, ClockOffset] = {}
         #: first tick of the record (the first feeder sample)
         self.first_tick: int | None = None
 
     def tick(self, t: float) -> int:
         """Tick index of plant time t."""
         return int(round(t / self.dt_s))
+
+    def _arrive(self, stream: str, t: float, seq: int, values: tuple[Any, ...]) -> float | None:
+        """Keep a message's raw stamp and arrival position; None if it is a re-sent copy of the
+        stream's message before (dropped, its stamp kept), else its time on the common
+        clock (the stamp less the stream's clock offset)."""
+        key = (float(t), int(seq), *values)
+        if self._last.get(stream) == key:
+            self._resent.setdefault(stream, []).append(float(t))
+            return None
+        self._last[stream] = key
+        self._stamps.setdefault(stream, []).append((float(t), int(seq), self._arrived))
+        self._arrived += 1
+        co = self.clock_offsets.get(stream)
+        return float(t) - (co.offset_s if co is not None else 0.0)
 
     # -- input -------------------------------------------------------------------------------
     def add_flow(
@@ -98,10 +133,13 @@ class LineRecord:
             raise ValueError(f"feeder must be one of {sorted(self.components)}, got {feeder!r}")
         if not np.isfinite(flow_kg_h) or flow_kg_h < 0:
             raise ValueError(f"flow_kg_h must be finite and >= 0, got {flow_kg_h!r}")
+        sample = FeederSample(float(flow_kg_h), bool(refilling), float(screw_speed_rpm))
+        tc = self._arrive(f"{feeder}:flow", t, seq, tuple(sample))
+        if tc is None:
+            return
+        t = tc
         if self.first_tick is None:
             self.first_tick = self.tick(t)
-        self._stamps.setdefault(f"{feeder}:flow", []).append((float(t), int(seq)))
-        sample = FeederSample(float(flow_kg_h), bool(refilling), float(screw_speed_rpm))
         for tt, row in self._aligner.push(feeder, t, sample):
             self._ticks[self.tick(tt)] = row
 
@@ -109,8 +147,15 @@ class LineRecord:
         """A reading of the NIR probe (% w/w) at plant time t (``seq``: its sequence number)."""
         if not np.isfinite(c_pct_w_w):
             raise ValueError(f"c_pct_w_w must be finite, got {c_pct_w_w!r}")
-        self._meas[self.tick(t)] = float(c_pct_w_w)
-        self._stamps.setdefault(NIR_STREAM, []).append((float(t), int(seq)))
+        tc = self._arrive(NIR_STREAM, t, seq, (float(c_pct_w_w),))
+        if tc is None:
+            return
+        k = self.tick(tc)
+        dist = abs(tc - k * self.dt_s)
+        if k in self._meas and self._meas_dist.get(k, math.inf) < dist:
+            return  # a reading stamped nearer this tick came first
+        self._meas[k] = float(c_pct_w_w)
+        self._meas_dist[k] = dist
 
     def add_event(self, event: Mapping[str, Any]) -> None:
         """A plant event as a dict (``kind``, ``t_s``, ``source``, ...; see
@@ -159,8 +204,20 @@ class LineRecord:
         dt_s: float,
         sensor_component: str,
     ) -> LineRecord:
-        """The record of (key, decoded message) pairs in plant-time order (e.g. a recording)."""
+        """The record of (key, decoded message) pairs in arrival order (e.g. a recording): a
+        first pass estimates the sources' clock offsets from the arrival order
+        (``twin_core.closeloop.quality.estimate_clock_offsets``), the second places every
+        sample on the common clock (module docstring)."""
+        messages = list(messages)
+        first = cls(components, dt_s, sensor_component, max_lag=1 << 30)
+        for key, msg in messages:
+            first.add_message(key, msg)
+        offsets = estimate_clock_offsets(first.stamps(-math.inf, math.inf), dt_s)
+        if not offsets:
+            first.finish()
+            return first
         rec = cls(components, dt_s, sensor_component, max_lag=1 << 30)
+        rec.clock_offsets = {c.series: c for c in offsets}
         for key, msg in messages:
             rec.add_message(key, msg)
         rec.finish()
@@ -222,12 +279,14 @@ class LineRecord:
         (sequence numbers None when a stream's messages came without them)."""
         out = {}
         for name, rows in self._stamps.items():
-            sel = [(t, q) for t, q in rows if t_start <= t <= t_end]
+            sel = [r for r in rows if t_start <= r[0] <= t_end]
             if not sel:
                 continue
             t = np.array([r[0] for r in sel])
             q = np.array([r[1] for r in sel])
-            out[name] = StreamStamps(t, None if np.any(q < 0) else q)
+            arrival = np.array([r[2] for r in sel])
+            resent = [x for x in self._resent.get(name, []) if t_start <= x <= t_end]
+            out[name] = StreamStamps(t, None if np.any(q < 0) else q, arrival, np.array(resent))
         return out
 
     def span(self) -> tuple[float, float]:
@@ -246,7 +305,15 @@ class LineRecord:
         """The whole record as a :class:`~twin_core.closeloop.data.RunData` (on :meth:`span`)."""
         a, b = self.span()
         t, y, inputs, events = self.arrays(a, b)
-        return RunData(t, y, inputs, events, name=name, stamps=self.stamps(a, b))
+        return RunData(
+            t,
+            y,
+            inputs,
+            events,
+            name=name,
+            stamps=self.stamps(a, b),
+            clock_offsets=list(self.clock_offsets.values()),
+        )
 
     def prune(self, keep_from: int) -> None:
         """Forget the ticks before ``keep_from`` (and the events before them, less the reach of
@@ -255,11 +322,14 @@ class LineRecord:
             del self._ticks[k]
         for k in [k for k in self._meas if k < keep_from]:
             del self._meas[k]
+            self._meas_dist.pop(k, None)
         lo = keep_from * self.dt_s - TRACER_REACH_S
         self._events = [e for e in self._events if float(e["t_s"]) >= lo]
         t_keep = (keep_from - 0.5) * self.dt_s
         for name, rows in self._stamps.items():
             self._stamps[name] = [r for r in rows if r[0] >= t_keep]
+        for name, rows in self._resent.items():
+            self._resent[name] = [r for r in rows if r >= t_keep]
 
 
 def refill_events(t: np.ndarray, refilling: Mapping[str, np.ndarray]) -> list[dict[str, Any]]:

@@ -306,6 +306,9 @@ class CloseLoopResult:
                 "sensor_component": self.model.config.sensor.component,
                 "status": self.status,
                 "data_quality": self.quality.to_list() if self.quality is not None else [],
+                "clock_offsets": [c.to_dict() for c in self.quality.clock_offsets]
+                if self.quality is not None
+                else [],
                 "effects": self.effect_entries(),
                 "possible_explanations": _possible_entries(self.attribution),
                 "product_at_risk": self.product_at_risk,
