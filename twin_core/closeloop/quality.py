@@ -535,26 +535,33 @@ def _phase(t: np.ndarray, period_s: float) -> tuple[float, float]:
     return float((np.angle(m) / (2 * np.pi) * period_s) % period_s), float(abs(m))
 
 
-def _order_interval(s: StreamStamps, r: StreamStamps) -> tuple[float, float, int]:
-    """Bounds of stream ``s``'s clock minus stream ``r``'s from the arrival order: a message
-    of ``s`` stamped s_i that arrived between messages of ``r`` stamped r_lo and r_hi was made
-    between those instants, so its offset lies in [s_i - r_hi, s_i - r_lo]; the medians of the
-    bounds over the messages (robust to jitter and to a few late messages), and how many."""
+def _order_bounds(s: StreamStamps, r: StreamStamps) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of stream ``s``'s clock minus stream ``r``'s from the arrival order, per message
+    of ``s``: a message stamped s_i that arrived between messages of ``r`` stamped r_lo and
+    r_hi was made between those instants, so its offset lies in [s_i - r_hi, s_i - r_lo]."""
     ra = np.asarray(r.arrival)
     order = np.argsort(ra, kind="stable")
     ra, rt = ra[order], np.asarray(r.t_s)[order]
     k = np.searchsorted(ra, np.asarray(s.arrival), side="left")
     ok = (k > 0) & (k < ra.size)
-    if not ok.any():
-        return -math.inf, math.inf, 0
     st = np.asarray(s.t_s)[ok]
-    lo = st - rt[k[ok]]
-    hi = st - rt[k[ok] - 1]
-    return float(np.median(lo)), float(np.median(hi)), int(ok.sum())
+    return st - rt[k[ok]], st - rt[k[ok] - 1]
+
+
+def _order_interval(s: StreamStamps, r: StreamStamps) -> tuple[float, float, int]:
+    """:func:`_order_bounds` summarised: the medians of the bounds over the messages (robust
+    to jitter and to a few late messages), and how many."""
+    lo, hi = _order_bounds(s, r)
+    if not lo.size:
+        return -math.inf, math.inf, 0
+    return float(np.median(lo)), float(np.median(hi)), int(lo.size)
 
 
 def estimate_clock_offsets(
-    stamps: Mapping[str, StreamStamps], period_s: float, margin: float = 0.1
+    stamps: Mapping[str, StreamStamps],
+    period_s: float,
+    margin: float = 0.1,
+    min_share: float = 0.9,
 ) -> list[ClockOffset]:
     """Sources whose clock is off the common clock of the record, from the arrival order of
     the messages (each stream's ``arrival``).
@@ -568,7 +575,10 @@ def estimate_clock_offsets(
     tie, the upper end: a source's message arrives after the reference's of the same instant),
     or the interval's middle when its stamps have no phase (irregular or heavily jittered).
     The arrival order resolves an offset to a period: a sub-period offset is not reported.
-    Streams without ``arrival`` are left out."""
+    An offset is reported only if it holds over the record (within the bounds of at least
+    ``min_share`` of the messages, widened by half a period): a clock that jumps is a
+    ``time_jump`` of :func:`stamp_flags`, not an offset. Streams without ``arrival`` are left
+    out."""
     names = [k for k, v in stamps.items() if v.arrival is not None and v.t_s.size >= 10]
     if len(names) < 2:
         return []
@@ -593,6 +603,12 @@ def estimate_clock_offsets(
             off = dphi + period_s * math.floor((hi + 1e-6 * period_s - dphi) / period_s)
         else:
             off = 0.5 * (lo + hi)
+        # a clock offset holds over the record: most messages' own bounds (widened by half a
+        # period of jitter) hold it; a clock that jumps (time_jump) is not put back here
+        lo_i, hi_i = _order_bounds(stamps[s], stamps[ref])
+        held = (lo_i - 0.5 * period_s - m <= off) & (off <= hi_i + 0.5 * period_s + m)
+        if held.mean() < min_share:
+            continue
         out.append(ClockOffset(s, float(off), lo - m, hi + m, n, ref))
     return out
 

@@ -115,6 +115,17 @@ def test_a_clock_offset_is_estimated_with_its_interval_and_corrected(base, strea
         assert np.mean(a[ok] == b[ok]) > 0.99
 
 
+@pytest.mark.parametrize("stream", ["nir", "api"])
+def test_a_clock_that_jumps_is_a_time_jump_not_an_offset(base, stream):
+    """A source's clock set back by 600 s half-way (``time_jump``): flagged as before, no
+    clock offset put on the whole record (the median over its messages would be ~ -300 s)."""
+    cfg, msgs = base
+    bad, _ = apply_faults(msgs, [DataFault("time_jump", stream, t_s=1800.0, size=-600.0)], cfg)
+    data, q = _check(cfg, bad)
+    assert data.clock_offsets == []
+    assert "time_jump" in [f.kind for f in q.flags]
+
+
 @pytest.mark.parametrize("stream", ["nir", "api", "excipient"])
 def test_stamp_jitter_of_half_a_sample_is_no_fault(base, stream):
     """Stamps jittered by up to half a sample period: no time jump, gap or stuck flag (before:
