@@ -157,6 +157,12 @@ def divert_command(line: str) -> str:
     return key(line, "divert", "command")
 
 
+def audit_record(line: str) -> str:
+    """The audit trail's records (``schemas.audit.AuditRecord``), published by the
+    supervisor alone."""
+    return key(line, "audit", "record")
+
+
 def dem_job(line: str, job_id: str, signal: str) -> str:
     if signal not in ("request", "progress", "result"):
         raise ValueError(f"signal must be 'request', 'progress' or 'result', got {signal!r}")

@@ -27,10 +27,18 @@ parent-death signal follows the thread that started a process).
 Each ``twin up`` gets a fresh run directory ``<state_dir>/run-<time>-<pid>`` (``$TWIN_STATE_DIR``
 of the services: restart state and output logs; ``<name>.log``: each service's output;
 ``<name>.pid``: its process; ``line.json``: the configuration, no password).
+
+The supervisor keeps the run's audit trail (``services.audit``, key ``<state_dir>/audit.key``):
+the trail's start and the configuration loaded (its SHA-256), every service start, exit,
+restart and kill, and from the bus every alert, divert command, close-loop finding (and its
+data-quality findings), model switch of the blender and rise of a service's rejection
+counters; on :meth:`stop` the services but the recorder stop first, then ``trail_end`` is
+recorded and the recorder stopped, so a recording of a run that ended cleanly ends its trail.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import signal
@@ -46,9 +54,12 @@ from typing import Any
 import zenoh
 
 from schemas import keys
+from schemas.audit import AuditRecord
 from schemas.bus_config import BusConfig
+from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
-from schemas.messages import ServiceHealth
+from schemas.messages import BlenderModelInUse, DivertCommand, OosAlert, ServiceHealth
+from services.audit import AUDIT_KEY_FILE, AuditTrail, load_or_create_key
 from services.bus import Publisher, open_session
 from services.common import (
     STATE_ENV,
@@ -159,6 +170,11 @@ class Supervisor:
         self._liveliness: Any = None
         self.codes: dict[str, int | None] = {}
         self.config_path = self.run_dir / "line.json"
+        self.trail: AuditTrail | None = None
+        self._audit_pub: Publisher | None = None
+        self._audit_subs: list[Any] = []
+        #: rejection counters of each service last seen (their rises are recorded)
+        self._rejected: dict[str, dict[str, int]] = {}
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> Supervisor:
@@ -173,11 +189,24 @@ class Supervisor:
             self._check_free()
             self.run_dir.mkdir(parents=True, exist_ok=True)
             spec.to_file(self.config_path)
+            key = load_or_create_key(Path(spec.state_dir) / AUDIT_KEY_FILE)
+            self.trail = AuditTrail(
+                key, self.run_dir.name, self._publish_audit, self.run_dir / "audit.jsonl"
+            )
             self._open_router()
         except BaseException:
             self._close_security()
             self._lock_file.release()
             raise
+        self.trail.append(
+            "supervisor",
+            "trail_start",
+            self.run_dir.name,
+            f"line {spec.name}, services {', '.join(self.names)}, "
+            f"{'secured bus' if self.secure else 'insecure bus (--insecure)'}, pid {os.getpid()}",
+        )
+        digest = hashlib.sha256(self.config_path.read_bytes()).hexdigest()
+        self.trail.append("supervisor", "config_loaded", "line.json", f"sha256 {digest}")
         self._t0 = time.monotonic()
         self._thread = threading.Thread(target=self._watch, name="supervisor", daemon=True)
         self._thread.start()
@@ -233,9 +262,32 @@ class Supervisor:
         self._health = Publisher(
             self.session, keys.service_health(spec.name, "supervisor"), ServiceHealth
         )
+        self._audit_pub = Publisher(
+            self.session,
+            keys.audit_record(spec.name),
+            AuditRecord,
+            history=spec.history_samples,
+            check_time=False,
+        )
+        watched = {
+            keys.oos_alert(spec.name): self._on_alert,
+            keys.divert_command(spec.name): self._on_divert,
+            keys.model_finding(spec.name): self._on_finding,
+            keys.blender_model_in_use(spec.name): self._on_model,
+            keys.services_health(spec.name): self._on_health,
+        }
+        self._audit_subs = [
+            self.session.declare_subscriber(
+                k, zenoh.handlers.Callback(self._audited(f), lambda: None)
+            )
+            for k, f in watched.items()
+        ]
 
     def _close_router_session(self) -> None:
         if self.session is not None and not self.session.is_closed():
+            for sub in self._audit_subs:
+                sub.undeclare()
+            self._audit_subs = []
             if self._liveliness is not None:
                 self._liveliness.undeclare()
             self._token.undeclare()
@@ -330,6 +382,86 @@ class Supervisor:
         write_pid(self.run_dir, child.name, child.proc.pid)
         child.started_at = time.monotonic()
         log.info("started %s (pid %d)", child.name, child.proc.pid)
+        action = "service_restart" if child.restarts else "service_start"
+        self._audit("supervisor", action, child.name, f"pid {child.proc.pid}")
+
+    # -- audit trail ---------------------------------------------------------------------------
+    def _publish_audit(self, rec: AuditRecord) -> None:
+        pub = self._audit_pub
+        if pub is None:
+            return
+        try:
+            pub.publish(rec)
+        except Exception as exc:  # noqa: BLE001 - the record is in audit.jsonl all the same
+            log.warning("audit record %d not published: %s", rec.seq, exc)
+
+    def _audit(self, actor: str, action: str, subject: str, detail: str = "") -> None:
+        if self.trail is not None:
+            self.trail.append(actor, action, subject, detail)
+
+    def _audited(self, handler: Any) -> Any:
+        """A bus callback that decodes nothing itself and never raises into zenoh."""
+
+        def callback(sample: zenoh.Sample) -> None:
+            try:
+                handler(str(sample.key_expr), sample.payload.to_bytes())
+            except Exception as exc:  # noqa: BLE001 - a bad message must not stop the trail
+                log.debug("audit: message on %s not recorded: %s", sample.key_expr, exc)
+
+        return callback
+
+    def _on_alert(self, key: str, payload: bytes) -> None:
+        a = OosAlert.model_validate_json(payload)
+        self.trail.see(a.t)
+        self._audit("oos", "alert", a.alert_id, f"{a.t_start_s:.1f}-{a.t_end_s:.1f} s: {a.cause}")
+
+    def _on_divert(self, key: str, payload: bytes) -> None:
+        d = DivertCommand.model_validate_json(payload)
+        self.trail.see(d.t)
+        self._audit(
+            "oos",
+            "divert_command",
+            d.command_id,
+            f"{d.action} {d.t_start_s:.1f}-{d.t_end_s:.1f} s (alert {d.alert_id}): {d.reason}",
+        )
+
+    def _on_finding(self, key: str, payload: bytes) -> None:
+        f = ModelFinding.model_validate_json(payload)
+        self.trail.see(f.t)
+        effects = ", ".join(e.label for e in f.effects) or "none"
+        self._audit(
+            "closeloop",
+            "model_finding",
+            f.finding_id,
+            f"{f.status}; effects {effects}; product at risk {f.product_at_risk}",
+        )
+        if f.data_quality:
+            kinds = ", ".join(
+                f"{q.kind} {q.t_start_s:.0f}-{q.t_end_s:.0f} s" for q in f.data_quality[:20]
+            )
+            self._audit("closeloop", "data_quality", f.finding_id, kinds)
+
+    def _on_model(self, key: str, payload: bytes) -> None:
+        m = BlenderModelInUse.model_validate_json(payload)
+        self.trail.see(m.t)
+        self._audit(
+            "blender",
+            "model_adopted",
+            m.name,
+            f"{m.kind} model from {m.applies_from_s:.1f} s ({m.reason}), mean residence time "
+            f"{m.mean_residence_time_s:.2f} s",
+        )
+
+    def _on_health(self, key: str, payload: bytes) -> None:
+        h = ServiceHealth.model_validate_json(payload)
+        now = {k: int(v) for k, v in h.counters.items() if k.startswith("rejected_")}
+        before = self._rejected.get(h.service, {})
+        rises = {k: v - before.get(k, 0) for k, v in now.items() if v > before.get(k, 0)}
+        self._rejected[h.service] = now
+        if rises:
+            text = ", ".join(f"{k} +{d} (total {now[k]})" for k, d in sorted(rises.items()))
+            last = h.last_error or ""
+            self._audit(h.service, "rejected_messages", h.service, f"{text}. {last}".strip())
 
     def publish_health(self) -> None:
         """Health of the supervisor: restarts and running state of every service."""
@@ -376,6 +508,7 @@ class Supervisor:
             )
             p.kill()
             child.lost_since = None
+            self._audit("supervisor", "service_killed", child.name, "liveliness token lost: killed")
 
     def _reap(self, child: Child, now: float) -> None:
         """Note a service that exited and schedule its restart (exponential backoff)."""
@@ -400,6 +533,12 @@ class Supervisor:
             p.returncode,
             up,
             child.backoff_s,
+        )
+        self._audit(
+            "supervisor",
+            "service_exit",
+            child.name,
+            f"exit status {p.returncode} after {up:.1f} s (crash); restart in {child.backoff_s:.1f} s",
         )
 
     def _watch(self) -> None:
@@ -432,8 +571,26 @@ class Supervisor:
         self.codes = self._stop_children()
 
     def _stop_children(self) -> dict[str, int | None]:
-        """SIGTERM every service, wait ``stop_timeout_s``, SIGKILL what remains; exit codes."""
-        procs = {n: c.proc for n, c in self.children.items() if c.proc is not None}
+        """Stop the services but the recorder, record their exits and ``trail_end``, then stop
+        the recorder (it records the end of the trail); exit codes."""
+        first = [n for n in self.children if n != "recorder"]
+        codes = self._stop_some(first)
+        for n, code in codes.items():
+            self._audit("supervisor", "service_exit", n, f"exit status {code} (stopped)")
+        self._audit("supervisor", "trail_end", self.run_dir.name, "twin stopped")
+        if "recorder" in self.children:
+            rec = self.children["recorder"]
+            if rec.proc is not None and rec.proc.poll() is None:
+                time.sleep(self.trail_settle_s)  # the recorder takes the last records
+            codes.update(self._stop_some(["recorder"]))
+        return codes
+
+    #: wall seconds the recorder is given to write the trail's last records before it stops
+    trail_settle_s = 1.0
+
+    def _stop_some(self, names: list[str]) -> dict[str, int | None]:
+        """SIGTERM these services, wait ``stop_timeout_s``, SIGKILL what remains; exit codes."""
+        procs = {n: c.proc for n, c in self.children.items() if c.proc is not None and n in names}
         for p in procs.values():
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)

@@ -32,6 +32,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "compartment",  # twin compartment build / simulate
     "closeloop",  # twin close-loop
     "opcua",  # twin bridge opcua / plant-opcua / import
+    "trace",  # twin trace ; twin batch report
+    "audit",  # twin audit verify / export
 )
 
 #: exit status of every command-line error

@@ -50,3 +50,15 @@ def test_a_clean_record_with_one_disturbance_diverts_only_its_window(bench, tmp_
     assert row["adopted"] == [] and row["product_at_risk"] == 0, row
     # good product diverted: the padded excursion's margins only (< 30 s of production)
     assert row["false_divert_kg"] < 30.0 * 12.0 / 3600.0, row
+    # the run's audit trail is in its recording, whole: every service started, the alert and
+    # its divert commands, the trail's end (services.audit; HMAC-SHA256, RFC 2104)
+    from services.audit import read_key, verify_trail
+    from services.recording import read_recording
+
+    trail = [m.payload for m in read_recording(live).messages if m.key.endswith("/audit/record")]
+    verdict = verify_trail(trail, read_key(tmp_path / "state" / "audit.key"))
+    assert verdict.ok, verdict.problem
+    actions = [__import__("json").loads(p)["action"] for p in trail]
+    assert actions[:2] == ["trail_start", "config_loaded"] and actions[-1] == "trail_end"
+    assert actions.count("service_start") == len(spec.services)
+    assert "alert" in actions and "divert_command" in actions
