@@ -41,6 +41,8 @@ __all__ = [
     "SensorLine",
     "SpecLimits",
     "TracerPulse",
+    "TrackingSettings",
+    "BatchSettings",
     "SERVICE_NAMES",
 ]
 
@@ -87,6 +89,11 @@ class FeederLine(StrictModel):
         default_factory=dict, description="field overrides of schemas.feeder.FeederConfig"
     )
     ideal: bool = Field(False, description="constant flow at the set point (no LIW dynamics)")
+    initial_lot: Ident | None = Field(
+        None,
+        description="raw-material lot in the hopper at the start (None: '<id>-L0000'); each "
+        "refill event's lot_id names the next (twin_core.tracking)",
+    )
 
     @model_validator(mode="after")
     def _liw_fields_known(self) -> FeederLine:
@@ -375,6 +382,38 @@ class CloseLoopSettings(StrictModel):
         return self
 
 
+class TrackingSettings(StrictModel):
+    """How the twin tracks raw-material lots to the blender outlet (``twin_core.tracking``).
+
+    ``hopper``: the loss-in-weight hopper's mixing of a refill with its heel: ``fifo`` (plug
+    flow, first in first out), ``mixed`` (stirred heel: the refill mixes at once with what is
+    left), ``mixture`` (a share ``mixed_fraction`` of each discharge drawn from the whole
+    hopper, the rest oldest first; calibrated on a refill with a tagged lot, see
+    docs/traceability.md). ``threshold``: the mass fraction of a lot in the product above which
+    a recall lists a product interval (``twin trace --lot``; default 1e-3 = 0.1 % w/w).
+    """
+
+    hopper: Literal["fifo", "mixed", "mixture"] = "fifo"
+    mixed_fraction: Fraction = 0.5
+    threshold: float = Field(1e-3, gt=0.0, lt=1.0)
+
+
+class BatchSettings(StrictModel):
+    """How the line's output is cut into batches (ICH Q13 section 3.1: a batch of a continuous
+    process is defined by a quantity of output, a quantity of input or a run time).
+
+    ``by``: ``product_mass`` (kg of product leaving the blender, diverted product included),
+    ``api_mass`` (kg of the ``api_component`` fed) or ``run_time`` (s of plant time); ``size``:
+    that quantity per batch (kg or s); the last batch of a record may be partial. ``start_s``:
+    plant time the first batch starts.
+    """
+
+    by: Literal["product_mass", "api_mass", "run_time"] = "product_mass"
+    size: Positive
+    api_component: Ident = "api"
+    start_s: NonNegative = 0.0
+
+
 class LineSpec(LineConfig):
     """The live twin's configuration: the declared line and how the services run it (see the
     module docstring)."""
@@ -384,6 +423,8 @@ class LineSpec(LineConfig):
     oos: OosSettings = Field(default_factory=OosSettings)
     rtd: RtdSettings = Field(default_factory=RtdSettings)
     closeloop: CloseLoopSettings = Field(default_factory=CloseLoopSettings)
+    tracking: TrackingSettings = Field(default_factory=TrackingSettings)
+    batch: BatchSettings | None = Field(None, description="batch definition (None: one batch)")
     bus: BusConfig = Field(
         default_factory=lambda: BusConfig(mode="router", listen=["tcp/127.0.0.1:7447"], connect=[])
     )

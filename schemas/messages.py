@@ -136,7 +136,8 @@ class Event(Message):
     """A discrete plant event. Key: ``twin/<line>/<unit>/<id>/event``.
 
     ``tracer_pulse``: ``mass_kg`` of tracer ``component`` injected at ``t``;
-    ``refill_start``/``refill_stop``: hopper refill of feeder ``source``;
+    ``refill_start``/``refill_stop``: hopper refill of feeder ``source`` (``lot_id``: the
+    raw-material lot the refill adds, contract 1.8; ``mass_kg``: its mass if known);
     ``disturbance``: an injected or observed effect described by ``detail`` (and ``magnitude``).
     """
 
@@ -149,6 +150,9 @@ class Event(Message):
     duration_s: NonNegative | None = Field(default=None, description="duration if known, s")
     magnitude: Finite | None = Field(default=None, description="size of a disturbance")
     detail: str = Field(default="", max_length=4096, description="free text")
+    lot_id: Ident | None = Field(
+        default=None, description="raw-material lot a refill adds (refill events), e.g. 'api-L0003'"
+    )
 
 
 class RtdEstimate(Message):

@@ -215,7 +215,10 @@ def cmd_plant_simulate(args: argparse.Namespace) -> int:
     check_output_file(Path(args.out))
     t0 = time.perf_counter()
     speeds = [parse_blade_speed(b) for b in args.blade_speed or []]
-    _, msgs = simulate_messages(spec, args.duration, args.seed, dists, effects, speeds)
+    from twin_core.tracking.assay import parse_lot_assay
+
+    assays = [parse_lot_assay(a) for a in args.lot_assay or []]
+    _, msgs = simulate_messages(spec, args.duration, args.seed, dists, effects, speeds, assays)
     n = write_messages(args.out, msgs)
     print(
         f"wrote {n} messages ({args.duration:.0f} s of plant time, seed {args.seed}, "
@@ -276,6 +279,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--blade-speed",
         action="append",
         help="T_S:RPM blade speed the plant reports from T_S on (repeatable), e.g. 900:75",
+    )
+    ps.add_argument(
+        "--lot-assay",
+        action="append",
+        help="FEEDER:LOT:ASSAY a raw-material lot whose content is ASSAY of label in the truth "
+        "(repeatable), e.g. api:L0003:0.9 (lots: <feeder>-L<k> for the k-th refill)",
     )
     ps.set_defaults(func=cmd_plant_simulate)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])

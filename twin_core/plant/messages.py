@@ -97,11 +97,15 @@ def simulate_messages(
     disturbances: Sequence[Mapping[str, Any]] = (),
     effects: Sequence[Mapping[str, Any]] = (),
     blade_speeds: Sequence[tuple[float, float]] = (),
+    lot_assays: Sequence[Any] = (),
 ) -> tuple[LineRun, list[tuple[str, Any]]]:
     """Simulate the line of ``spec`` (``simulate_line``); return (run, messages).
     ``blade_speeds``: (plant time, rpm) reports of the blender's drive (``BlenderDrive``) put in
     the messages; the simulated blender itself does not change with them (its E(t) is the
-    declared one)."""
+    declared one). ``lot_assays``: lots of other API content in the truth
+    (``twin_core.tracking.assay.LotAssay``; the hopper law of ``spec.tracking``)."""
+    from twin_core.tracking.hopper import mixed_fraction
+
     run = simulate_line(
         spec,
         duration_s,
@@ -109,6 +113,8 @@ def simulate_messages(
         seed=seed,
         effects=list(effects),
         disturbances=list(disturbances),
+        lot_assays=list(lot_assays),
+        hopper_mixing=mixed_fraction(spec.tracking.hopper, spec.tracking.mixed_fraction),
     )
     msgs = run_messages(run, spec)
     if not blade_speeds:

@@ -207,6 +207,8 @@ def simulate_line(
     open_world: Sequence[OpenWorldEffect | Mapping[str, Any]] = (),
     blender: str = "convolution",
     feeder_records: Mapping[str, FeederRecord] | None = None,
+    lot_assays: Sequence[Any] = (),
+    hopper_mixing: float = 0.0,
 ) -> LineRun:
     """Simulate the line for ``duration_s`` on a uniform grid of step ``dt_s``.
 
@@ -216,7 +218,10 @@ def simulate_line(
     for the chain; the outlet is seed 6.2 Eq. (6) convolution applied per component mass flow
     (``blender="convolution"``) or the finite-volume vessel (``"fv"``). ``feeder_records``:
     the feeders of an earlier run of the same configuration, grid and seed (the LIW simulation
-    is the slow part of a run), used as copies instead of simulating them again.
+    is the slow part of a run), used as copies instead of simulating them again. ``lot_assays``:
+    raw-material lots whose content is not the label's (``twin_core.tracking.assay.LotAssay``:
+    the truth's API feeder delivers that share of the lot as inert matter; the lot shares of
+    its discharge follow the hopper law with stirred share ``hopper_mixing``).
     """
     if not isinstance(config, LineConfig):
         raise ValueError(f"config must be a LineConfig, got {type(config).__name__}")
@@ -263,6 +268,15 @@ def simulate_line(
         refilling={k: f.refilling for k, f in feeders.items()},
         tracers=list(config.tracers),
     )
+    if lot_assays:  # the truth's inputs: lots of other assay (twin_core.tracking.assay)
+        from twin_core.tracking.assay import lot_assay_inputs
+
+        initial = {f.id: f.initial_lot for f in config.feeders}
+        run_inputs = lot_assay_inputs(
+            run_inputs, feeders, events, lot_assays, hopper_mixing, initial
+        )
+        if ows or blender == "fv":
+            raise ValueError("lot_assays need the convolution blender without open-world effects")
     sensor = config.sensor
     if ows or blender == "fv":
         line = open_world_line(config, t, feeders, effs, ows, blender)
@@ -280,6 +294,8 @@ def simulate_line(
             )
             feeder_effs = [e for e in effs if e.stage == "feeder"]
             rec.delivered_kg_h = inlet_component_flows(single, feeder_effs)[rec.component] * 3600.0
+            if lot_assays:  # the lot-assay truth: what of the material is the component
+                rec.delivered_kg_h *= _ratio(run_inputs.flows_kg_h[name], rec.flow_kg_h)
         outlet = outlet_concentration(run_inputs, config.blender, effs)
         c = outlet.get(sensor.component, np.zeros(n))
         sig = sensor_signal(t, c, effs, sensor.noise.baseline_offset)
@@ -329,17 +345,25 @@ def _copied(records: Mapping[str, FeederRecord], feeder: str, n: int) -> FeederR
     return FeederRecord(rec.id, rec.component, refills=list(rec.refills), **arrays)
 
 
+def _ratio(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a / b where b > 0, else 1."""
+    return np.where(b > 0, a / np.where(b > 0, b, 1.0), 1.0)
+
+
 def _line_events(
     feeders: Mapping[str, FeederRecord],
     disturbances: Sequence[FlowDisturbance],
     tracers: Sequence[TracerPulse],
 ) -> list[Event]:
     """The run's events as the line reports them (``schemas.messages.Event``, numbered in time
-    order): hopper refills (source: the feeder), disturbances and their ends (source: the
+    order): hopper refills (source: the feeder; ``lot_id``: ``<feeder>-L<k>`` for its k-th
+    refill, ``twin_core.tracking.refill_lot_id``), disturbances and their ends (source: the
     feeder, ``magnitude``: the flow change in kg/h) and tracer pulses (source: the component)."""
+    from twin_core.tracking.tracker import refill_lot_id
+
     rows: list[dict[str, Any]] = []
     for fid, rec in feeders.items():
-        for a, b in rec.refills:
+        for k, (a, b) in enumerate(rec.refills, start=1):
             for t_s, kind in ((a, "refill_start"), (b, "refill_stop")):
                 rows.append(
                     dict(
@@ -348,6 +372,7 @@ def _line_events(
                         source=fid,
                         component=rec.component,
                         detail="hopper refill",
+                        lot_id=refill_lot_id(fid, k),
                     )
                 )
     for d in disturbances:
