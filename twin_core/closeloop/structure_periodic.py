@@ -213,6 +213,7 @@ class _Sinusoid:
     sigma_loc: float
     f_threshold: float  # F at the search level (Bonferroni)
     fit: np.ndarray  # fitted sinusoid on the whole grid (no constant)
+    log_p: float  # log of the Bonferroni p (ranks candidates whose p underflows)
 
 
 def _fit_sinusoid(
@@ -234,8 +235,8 @@ def _fit_sinusoid(
         return None, lines, band
     n_indep = max(1.0, (f_hi - f_lo) * t_span)
     j = int(np.flatnonzero(band)[np.argmax(lines.f_stat[band])])
-    p_one = float(stats.f.sf(lines.f_stat[j], 2, lines.dof))
-    p_search = min(1.0, p_one * n_indep)
+    log_p = float(stats.f.logsf(lines.f_stat[j], 2, lines.dof)) + math.log(n_indep)
+    p_search = min(1.0, math.exp(min(log_p, 0.0)))
     if p_search >= level:
         return None, lines, band
     f_hz = refine_frequency(lines, x, j, dt)
@@ -266,6 +267,7 @@ def _fit_sinusoid(
             sigma_loc,
             float(stats.f.isf(level / n_indep, 2, lines.dof)),
             fit,
+            log_p,
         ),
         lines,
         band,
@@ -445,6 +447,7 @@ class _ScrewLine:
     q_grid: np.ndarray
     w_grid: np.ndarray
     others: list[str]
+    log_p: float
 
 
 class _ScrewSearch:
@@ -571,6 +574,7 @@ def _fit_screw_locked(search: _ScrewSearch, r: np.ndarray, level: float) -> _Scr
         grid,
         w_grid,
         others,
+        float(stats.chi2.logsf(w0, 2)) + math.log(m),
     )
 
 
@@ -637,18 +641,20 @@ def find_periodic(
     for _ in range(opt.max_sinusoids):
         s, lines, band = _fit_sinusoid(ctx, r, span, opt, search_level)
         sl = _fit_screw_locked(screws, r, search_level) if n_searches == 2 else None
-        if sl is not None and (s is None or sl.p_search <= s.p_search):
-            fit = sl.fit
-            ev = heldout_evidence(ctx, fit, level, opt.min_improvement, e0=r)
-            finding = _screw_finding(ctx, sl, ev, r) if ev.passed else None
-        elif s is not None:
-            fit = s.fit
-            ev = heldout_evidence(ctx, fit, level, opt.min_improvement, e0=r)
-            finding = _finding(ctx, opt, s, ev, r, span, lines, band) if ev.passed else None
+        # the stronger candidate first (log p: both may underflow); the other if it fails
+        cands = sorted((c for c in (s, sl) if c is not None), key=lambda c: c.log_p)
+        accepted = None
+        for c in cands:
+            ev = heldout_evidence(ctx, c.fit, level, opt.min_improvement, e0=r)
+            if ev.passed:
+                accepted = (c, ev)
+                break
+        if accepted is None:
+            break
+        c, ev = accepted
+        if isinstance(c, _ScrewLine):
+            out.append(_screw_finding(ctx, c, ev, r))
         else:
-            break
-        if finding is None:
-            break
-        out.append(finding)
-        r = r - fit
+            out.append(_finding(ctx, opt, c, ev, r, span, lines, band))
+        r = r - c.fit
     return out

@@ -62,6 +62,35 @@ def test_screw_pulsation_of_the_benchmark_is_found_with_period_and_amplitude_int
     StructureEntry.model_validate(f.to_dict())
 
 
+def test_a_line_ten_thousand_times_the_spectrum_median_is_found_with_its_period():
+    """A 75 s API flow pulsation (20 %, fixed frequency) whose residual periodogram peak stands
+    1.5e4 x the spectrum's median: the line search finds it, with the period's interval
+    covering 75 s and the amplitude within 5 % of the noise-free residual's on the training
+    window. (Before: the screw-locked search's p-value underflowed to 0 like the line's, the
+    tie went to the screw-locked candidate, which failed the held-out test, and the search
+    stopped: a wrong excipient pulsation or nothing.)"""
+    run = sc.base_run(3600.0, seed=11)
+    case = sc.pulsation_case(run, 6, 0.2, period_s=75.0)
+    sp = make_split(case.data.t_s)
+    pred = case.model.predict(case.data.inputs)
+    x = (case.data.measured - pred)[sp.train]
+    per = np.abs(np.fft.rfft(x - x.mean()))[1:] ** 2
+    assert per.max() > 1e4 * np.median(per)
+    found = find_structure(
+        case.data,
+        case.model,
+        train=sp.train,
+        heldout=sp.heldout,
+        options=StructureOptions(kinds=("periodic",)),
+    )
+    assert found and "locked to the screw" not in found[0].summary, [f.summary for f in found]
+    v, lo, hi = found[0].estimates["period_s"]
+    assert lo <= 75.0 <= hi
+    t, tr = case.data.t_s, sp.train
+    amp = sc._sinusoid_amplitude(t[tr], (case.signal - pred)[tr], 1 / 75.0)
+    assert found[0].estimates["amplitude_pct_w_w"][0] == pytest.approx(amp, rel=0.05)
+
+
 def test_pulsation_design_is_the_first_order_change_of_the_prediction():
     """d prediction / d (a, b) against the model's own prediction with the pulsation applied
     at a small amplitude (the linearisation the Wald test and the correction rest on)."""
@@ -81,14 +110,14 @@ def test_pulsation_design_is_the_first_order_change_of_the_prediction():
 
 
 def test_periodic_searches_keep_their_size_on_effect_free_plant_records():
-    """Six effect-free 20-minute records of the benchmark's scenario from the plant simulator
+    """Four effect-free 20-minute records of the benchmark's scenario from the plant simulator
     (noise x1 and x2 the seed's): no periodic finding; the search statistics' p-values of every
     try (screw-locked Wald per feeder x order, the line search's smallest Bonferroni p) are not
-    smaller than uniform ones (at most 8 of the 36 Wald p-values below 0.05: binomial
-    P(>= 9) = 0.001 at the nominal size; KS p > 0.001)."""
+    smaller than uniform ones (at most 6 of the 24 Wald p-values below 0.05: binomial
+    P(>= 7) = 1e-4 at the nominal size; KS p > 0.001)."""
     opt = StructureOptions(kinds=("periodic",))
     p_wald, p_line = [], []
-    for seed in range(6):
+    for seed in range(4):
         case = sc.openworld_case(1200.0, 1000 + seed, noise=1.0 + seed % 2)
         sp = make_split(case.data.t_s)
         found = find_structure(
@@ -104,7 +133,7 @@ def test_periodic_searches_keep_their_size_on_effect_free_plant_records():
         s, _, _ = _fit_sinusoid(ctx, ctx.resid, contiguous_span(ctx.train), opt, 1.0 - 1e-12)
         p_line.append(s.p_search if s is not None else 1.0)
     p_wald = np.array(p_wald)
-    assert np.sum(p_wald < 0.05) <= 8, np.sort(p_wald)[:10]
+    assert np.sum(p_wald < 0.05) <= 6, np.sort(p_wald)[:10]
     assert stats.kstest(p_wald, "uniform").pvalue > 0.001, np.sort(p_wald)
     assert sum(p < opt.search_alpha for p in p_line) <= 1, p_line
 
