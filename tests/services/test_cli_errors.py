@@ -70,6 +70,8 @@ CASES: dict[str, tuple[str, str]] = {
         "{missing} --config {missing} --out {tmp}/o.mcap",
         "{tmp} --config {bad} --out {tmp}/o.mcap",
     ),
+    "trace": ("{missing} --lot api-L0001", "{missing} --config {bad} --at 10"),
+    "batch report": ("{missing} --out {tmp}/o", "{missing} --config {bad} --out {tmp}/o"),
 }
 
 

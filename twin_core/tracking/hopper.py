@@ -73,7 +73,8 @@ class Hopper:
 
     @property
     def mass_kg(self) -> float:
-        return float(sum(x[1] for x in self.layers))
+        layers = self.layers
+        return layers[0][1] if len(layers) == 1 else float(sum(x[1] for x in layers))
 
     def refill(self, lot: int, mass_kg: float) -> None:
         """Put ``mass_kg`` of ``lot`` on top (a refill)."""

@@ -35,6 +35,7 @@ Chemical Reaction Engineering, 3rd ed., ch. 11; Danckwerts, P.V. (1953) Chem. En
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -132,7 +133,7 @@ class MaterialTracker:
         self._index: dict[str, int] = {}
         #: kg of each lot put in (initial hopper + refills), discharged by the hopper, left
         self.mass_in = np.zeros(0)
-        self.mass_fed = np.zeros(0)
+        self._fed: list[float] = []
         self.mass_out = np.zeros(0)
         self._initial = {f: initial_lot_id(f, (initial_lots or {}).get(f)) for f in self.components}
         self.hoppers: dict[str, Hopper] = {}
@@ -155,8 +156,9 @@ class MaterialTracker:
         self.lots.append(lot)
         self.lot_feeder.append(feeder)
         self.lot_component.append(self.components[feeder])
-        for name in ("mass_in", "mass_fed", "mass_out"):
+        for name in ("mass_in", "mass_out"):
             setattr(self, name, np.append(getattr(self, name), 0.0))
+        self._fed.append(0.0)
         if i >= self._buf.shape[1]:
             grown = np.zeros((self._buf.shape[0], 2 * self._buf.shape[1]))
             grown[:, : self._buf.shape[1]] = self._buf
@@ -223,8 +225,9 @@ class MaterialTracker:
         dt = self.dt
         u_idx: list[int] = []
         u_val: list[float] = []
+        isfinite = math.isfinite
         for f in self.components:
-            measured = float(hopper_kg.get(f, np.nan))
+            measured = float(hopper_kg.get(f, math.nan))
             if f not in self.hoppers:
                 lot = self.lot_index(self._initial[f], f)
                 m0 = measured if np.isfinite(measured) and measured > 0 else 0.0
@@ -232,22 +235,23 @@ class MaterialTracker:
                 self.mass_in[lot] += m0
             hop = self.hoppers[f]
             pending = self._pending[f]
-            while pending and pending[0][2]:
+            while pending and pending[0][2]:  # refills that stopped
                 name, mass, _ = pending.pop(0)
                 lot = self.lot_index(name, f)
                 if mass is None:
-                    mass = measured - hop.mass_kg if np.isfinite(measured) else 0.0
+                    mass = measured - hop.mass_kg if isfinite(measured) else 0.0
                 mass = max(float(mass), 0.0)
                 hop.refill(lot, mass)
                 self.mass_in[lot] += mass
             q = float(flows_kg_h.get(f, 0.0))
-            q = q if np.isfinite(q) and q > 0 else 0.0
+            q = q if isfinite(q) and q > 0 else 0.0
             before = hop.overdraw_kg
             for lot, kg in hop.discharge(q / 3600.0 * dt):
                 u_idx.append(lot)
                 u_val.append(kg / dt)
-                self.mass_fed[lot] += kg
-            self.mass_in[hop.newest] += hop.overdraw_kg - before
+                self._fed[lot] += kg
+            if hop.overdraw_kg != before:
+                self.mass_in[hop.newest] += hop.overdraw_kg - before
         return u_idx, u_val
 
     def _blend(self, t: float, idx: list[int], val: list[float]) -> np.ndarray:
@@ -273,6 +277,11 @@ class MaterialTracker:
         return y
 
     # ------------------------------------------------------------------ outputs
+    @property
+    def mass_fed(self) -> np.ndarray:
+        """kg of each lot the hoppers discharged."""
+        return np.asarray(self._fed, dtype=float)
+
     def blender_content(self) -> np.ndarray:
         """kg of each lot in the blender (inlet mass not yet out)."""
         return self._buf[self._pos :, : len(self.lots)].sum(axis=0) * self.dt
@@ -323,8 +332,9 @@ class MaterialTracker:
         )
         for lot, feeder in zip(state["lots"], state["lot_feeder"]):
             obj.lot_index(lot, feeder)
-        for name in ("mass_in", "mass_fed", "mass_out"):
+        for name in ("mass_in", "mass_out"):
             setattr(obj, name, np.asarray(state[name], float))
+        obj._fed = [float(x) for x in state["mass_fed"]]
         obj.hoppers = {f: Hopper.from_state(h) for f, h in state["hoppers"].items()}
         obj._pending = {f: [list(p) for p in v] for f, v in state["pending"].items()}
         obj._n_refills = {f: int(v) for f, v in state["n_refills"].items()}
@@ -421,22 +431,25 @@ def track_lots(
             raise ValueError(f"refill feeder must be one of {sorted(components)}, got {r.feeder!r}")
         by_feeder[r.feeder].append(r)
     nexts = {f: 0 for f in components}
-    flows = {f: np.asarray(flows_kg_h[f], dtype=float) for f in components}
-    hops = {f: np.asarray((hopper_kg or {}).get(f, np.full(n, np.nan)), float) for f in components}
+    flows = {f: np.asarray(flows_kg_h[f], dtype=float).tolist() for f in components}
+    hops = {
+        f: np.asarray((hopper_kg or {}).get(f, np.full(n, np.nan)), float).tolist()
+        for f in components
+    }
+    tl = t.tolist()
     rows: list[tuple[int, int, float]] = []
     eps = 1e-9 * dt
+    names = list(components)
     for i in range(n):
-        ti = t[i]
-        for f in components:
+        ti = tl[i]
+        for f in names:
             lst = by_feeder[f]
             while nexts[f] < len(lst) and lst[nexts[f]].t_stop_s <= ti + eps:
                 r = lst[nexts[f]]
                 tr.refill_start(f, r.lot_id)
                 tr.refill_stop(f, r.mass_kg)
                 nexts[f] += 1
-        u_idx, u_val = tr.feed(
-            {f: flows[f][i] for f in components}, {f: hops[f][i] for f in components}
-        )
+        u_idx, u_val = tr.feed({f: flows[f][i] for f in names}, {f: hops[f][i] for f in names})
         rows.extend((i, j, v) for j, v in zip(u_idx, u_val))
     n_lots = len(tr.lots)
     fed = np.zeros((n, n_lots))
