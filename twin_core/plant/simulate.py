@@ -269,11 +269,26 @@ def simulate_line(
         tracers=list(config.tracers),
     )
     if lot_assays:  # the truth's inputs: lots of other assay (twin_core.tracking.assay)
-        from twin_core.tracking.assay import lot_assay_inputs
+        from twin_core.tracking.assay import lot_assay_flows
 
+        hoppers = {k: f.hopper_mass_kg for k, f in feeders.items()}
         initial = {f.id: f.initial_lot for f in config.feeders}
-        run_inputs = lot_assay_inputs(
-            run_inputs, feeders, events, lot_assays, hopper_mixing, initial
+        flows, comps = lot_assay_flows(
+            t,
+            run_inputs.flows_kg_h,
+            run_inputs.components,
+            hoppers,
+            events,
+            lot_assays,
+            hopper_mixing,
+            initial,
+        )
+        run_inputs = LineInputs(
+            t_s=t,
+            flows_kg_h=flows,
+            components=comps,
+            refilling=run_inputs.refilling,
+            tracers=run_inputs.tracers,
         )
         if ows or blender == "fv":
             raise ValueError("lot_assays need the convolution blender without open-world effects")

@@ -101,37 +101,37 @@ def refills_from_events(events: Sequence[Any]) -> list[Any]:
     return out
 
 
-def lot_assay_inputs(
-    inputs: Any,
-    feeders: Mapping[str, Any],
+def lot_assay_flows(
+    t_s: np.ndarray,
+    flows_kg_h: Mapping[str, np.ndarray],
+    components: Mapping[str, str],
+    hopper_kg: Mapping[str, np.ndarray],
     events: Sequence[Any],
     assays: Sequence[LotAssay],
     alpha: float = 0.0,
     initial_lots: Mapping[str, str | None] | None = None,
-) -> Any:
-    """The plant's truth under lots of other assay (Eq. (1)): a copy of the line inputs
-    (``twin_core.plant.model.LineInputs``) whose API feeder delivers q_api and a new feeder
-    ``<feeder>.inert`` (of the first other component) the inert rest. ``feeders``: feeder id ->
-    ``FeederRecord`` (flows and hopper masses); the lot shares of the discharge follow the
-    hopper law with ``alpha`` (``twin_core.tracking.hopper``)."""
-    from twin_core.plant.model import LineInputs
+) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """The plant's truth under lots of other assay (Eq. (1)): the feeders' delivered flows and
+    components, where the API feeder delivers q_api and a new feeder ``<feeder>.inert`` (of the
+    first other component) the inert rest. The lot shares of the discharge follow the hopper law
+    with ``alpha`` (``twin_core.tracking.hopper``) on the measured hopper masses ``hopper_kg``
+    and the refill ``events`` (``schemas.messages.Event``)."""
     from twin_core.tracking.tracker import track_lots
 
-    assert isinstance(inputs, LineInputs)
-    comps = dict(inputs.components)
+    comps = dict(components)
     for a in assays:
         if a.feeder not in comps:
             raise ValueError(f"lot assay feeder must be one of {sorted(comps)}, got {a.feeder!r}")
-    t = inputs.t_s
+    t = np.asarray(t_s, dtype=float)
     dt = float(t[1] - t[0])
-    flows = dict(inputs.flows_kg_h)
+    flows = {f: np.asarray(v, dtype=float) for f, v in flows_kg_h.items()}
     trace = track_lots(
         t,
         flows,
         comps,
         [(0.0, np.array([1.0 / dt]))],
         refills_from_events(events),
-        {f: np.asarray(r.hopper_mass_kg, float) for f, r in feeders.items()},
+        hopper_kg,
         alpha,
         initial_lots,
     )
@@ -154,10 +154,4 @@ def lot_assay_inputs(
         flows[f] = api
         flows[f"{f}.inert"] = inert
         comps[f"{f}.inert"] = others[0]
-    return LineInputs(
-        t_s=t,
-        flows_kg_h=flows,
-        components=comps,
-        refilling=dict(inputs.refilling),
-        tracers=list(inputs.tracers),
-    )
+    return flows, comps
