@@ -56,8 +56,9 @@ or ``noted``; they do not make the status ``data_quality``):
   step beyond four robust standard deviations of the stamp intervals' own scatter and half
   a period; a gap is what the sequence numbers skip);
 - ``irregular_sampling``: stamps that wander off any regular grid (their offset from the
-  sequence numbers' grid spreads over more than two periods): each reading put on its
-  nearest tick;
+  sequence numbers' grid spreads over more than two periods, :func:`sampling_kind`): each
+  reading on its nearest tick (two on one tick: the NIR keeps the nearer), a tick without one
+  held for a flow, empty for the NIR;
 - ``clock_offset``: a source's clock off the common clock (:func:`estimate_clock_offsets`,
   from the arrival order of the messages): the record put the source back on the common
   clock; reported with its interval (``DataQuality.clock_offsets``), not left to the
@@ -491,13 +492,11 @@ def stamp_notes(
                 "repaired",
             )
         )
-    # the stamps' wander off the sequence numbers' grid, clock jumps left out
+    kind, size = sampling_kind(stamps, period_s)
     ok = (np.abs(x) <= tol) & (d != 0)
-    wander = np.concatenate([[0.0], np.cumsum(np.where(ok, x, 0.0))])
-    wander -= np.median(wander)
-    spread = float(np.quantile(wander, 0.995) - np.quantile(wander, 0.005))
     dd = d[ok & (periods == 1)] if seq is not None else d[ok]
-    if spread > 2.0 * period_s and seq is not None:
+    what = "each reading on its nearest tick"
+    if kind == "irregular":
         notes.append(
             DataFlag(
                 "irregular_sampling",
@@ -505,13 +504,12 @@ def stamp_notes(
                 float(t[0]),
                 float(t[-1]),
                 int(t.size),
-                f"stamps wander {spread:.1f} s off a regular {period_s:g} s grid, intervals "
-                f"{dd.min():.2f}-{dd.max():.2f} s: each reading on its nearest tick",
+                f"stamps wander {size:.1f} s off a regular {period_s:g} s grid, intervals "
+                f"{dd.min():.2f}-{dd.max():.2f} s: {what}",
                 "repaired",
             )
         )
-    elif np.quantile(np.abs(wander), 0.99) > 0.05 * period_s:
-        j = float(np.quantile(np.abs(wander), 0.99))
+    elif kind == "jitter":
         notes.append(
             DataFlag(
                 "jitter",
@@ -519,12 +517,35 @@ def stamp_notes(
                 float(t[0]),
                 float(t[-1]),
                 int(t.size),
-                f"stamps scatter up to {j:.2f} s (99 %) around a regular {period_s:g} s grid: "
-                "each reading on its nearest tick",
+                f"stamps scatter up to {size:.2f} s (99 %) around a regular {period_s:g} s "
+                "grid: each reading on its nearest tick",
                 "repaired",
             )
         )
     return notes
+
+
+def sampling_kind(stamps: StreamStamps, period_s: float) -> tuple[str | None, float]:
+    """How a stream's stamps sit on its regular grid: ``("irregular", spread)`` when they
+    wander off the sequence numbers' grid by more than two periods over the record (0.5-99.5 %
+    range, clock jumps left out: irregular sampling), ``("jitter", q99)`` when they scatter
+    around it by more than 5 % of a period, else ``(None, 0)``."""
+    t = np.asarray(stamps.t_s, dtype=float)
+    if t.size < 10:
+        return None, 0.0
+    seq = None if stamps.seq is None else np.asarray(stamps.seq, dtype=np.int64)
+    d = np.diff(t)
+    x, _, tol = _stamp_excess(t, seq, period_s)
+    ok = (np.abs(x) <= tol) & (d != 0)
+    wander = np.concatenate([[0.0], np.cumsum(np.where(ok, x, 0.0))])
+    wander -= np.median(wander)
+    spread = float(np.quantile(wander, 0.995) - np.quantile(wander, 0.005))
+    if spread > 2.0 * period_s and seq is not None:
+        return "irregular", spread
+    j = float(np.quantile(np.abs(wander), 0.99))
+    if j > 0.05 * period_s:
+        return "jitter", j
+    return None, 0.0
 
 
 def _phase(t: np.ndarray, period_s: float) -> tuple[float, float]:

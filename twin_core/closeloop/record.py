@@ -25,7 +25,8 @@ bus and no file format.
   estimated from the arrival order (``twin_core.closeloop.quality.estimate_clock_offsets``)
   and reported (``RunData.clock_offsets``); the raw stamps are kept for the data-quality check.
 - Two readings of a stream on one tick (jitter, irregular sampling): the NIR keeps the one
-  stamped nearer the tick.
+  stamped nearer the tick (interpolating between noisy readings would average their noise and
+  correlate it, which the noise tests read as structure).
 - Refill state comes from the feeders' ``refilling`` flags only: ``refill_start`` /
   ``refill_stop`` events on the bus are not read; the events of a window carry refill events at
   the flags' edges instead.
@@ -213,13 +214,12 @@ class LineRecord:
         for key, msg in messages:
             first.add_message(key, msg)
         offsets = estimate_clock_offsets(first.stamps(-math.inf, math.inf), dt_s)
-        if not offsets:
-            first.finish()
-            return first
-        rec = cls(components, dt_s, sensor_component, max_lag=1 << 30)
-        rec.clock_offsets = {c.series: c for c in offsets}
-        for key, msg in messages:
-            rec.add_message(key, msg)
+        rec = first
+        if offsets:
+            rec = cls(components, dt_s, sensor_component, max_lag=1 << 30)
+            rec.clock_offsets = {c.series: c for c in offsets}
+            for key, msg in messages:
+                rec.add_message(key, msg)
         rec.finish()
         return rec
 

@@ -45,8 +45,10 @@ fault is a sampling one (``irregular``):
 - ``jitter``: each stamp moved by U(-``size``, ``size``) s (``size`` up to half a sample
   period), in the order of arrival;
 - ``irregular``: the stream is sampled at irregular times, its intervals the period times
-  U(1 - ``fraction``, 1 + ``fraction``): the values (linear between the original samples; the
-  refill flag the last one) at those times, numbered anew, arriving in time order;
+  U(1 - ``fraction``, 1 + ``fraction``): each message the one of the original sample nearest
+  its time (the process as it was at that instant, with its own noise: interpolating between
+  noisy readings would average the noise), stamped with that time, numbered anew, arriving in
+  time order;
 - ``drop_ticks``: a share ``fraction`` of the messages lost, isolated ones (a missing tick);
 - ``duplicate_ticks``: a share ``fraction`` of the messages delivered twice (the same stamp,
   sequence number and values: a re-sent message).
@@ -86,14 +88,6 @@ _FIELDS = {
     "screw_speed": "screw_speed_rpm",
     "refilling": "refilling",
 }
-#: message fields interpolated by ``irregular`` (the others are taken from the sample before)
-_LINEAR = (
-    "concentration_pct_w_w",
-    "mass_flow_kg_h",
-    "screw_speed_rpm",
-    "hopper_mass_kg",
-    "feed_factor_g_rev",
-)
 
 
 @dataclass(frozen=True)
@@ -246,20 +240,15 @@ def _apply_timing(
         steps = period * rng.uniform(1 - fault.fraction, 1 + fault.fraction, idx.size * 2 + 2)
         tn = a + np.concatenate([[0.0], np.cumsum(steps)])
         tn = tn[tn <= b]
-        lin = {
-            f: np.interp(tn, t, [getattr(m, f) for m in msgs])
-            for f in _LINEAR
-            if hasattr(msgs[0], f)
-        }
-        before = np.clip(np.searchsorted(t, tn, side="right") - 1, 0, len(msgs) - 1)
+        nearest = np.clip(np.round(np.interp(tn, t, np.arange(t.size))), 0, len(msgs) - 1)
         order = np.argsort(t_all, kind="stable")
         # the arrival position of a new sample: just after the last message stamped before it
         at = np.searchsorted(t_all[order], tn, side="right") - 1
         pos = np.where(at >= 0, order[np.maximum(at, 0)] + 0.5, -0.5)
         seq0 = int(msgs[idx[0]].seq)
         made = []
-        for n, (tt, j, p) in enumerate(zip(tn, before, pos)):
-            upd = {"t": float(tt), "seq": seq0 + n, **{f: float(v[n]) for f, v in lin.items()}}
+        for n, (tt, j, p) in enumerate(zip(tn, nearest, pos)):
+            upd = {"t": float(tt), "seq": seq0 + n}
             made.append((float(p), msgs[int(j)].model_copy(update=upd)))
         keep = [x for i, x in enumerate(keep) if not inside[i]] + made
         truth["n_samples"] = len(made)
