@@ -1362,14 +1362,16 @@ class BusReplay:
         return self
 
     def _refuse_past(self) -> None:
-        """Refuse to replay into a twin that has already seen later plant time (see above)."""
+        """Refuse to replay into a twin that has already seen later plant time (see above).
+        Recorders (the ``recorder`` service, the ``twin record`` tool) do not count: they record
+        what goes back in time as it was on the bus."""
         if not self.rec.messages:
             return
         t0 = self.rec.messages[0].t
         seen = {
             name: r.health.t
             for name, r in self._baseline.items()
-            if name not in (self.svc.name, "supervisor") and r.health.t > t0
+            if name not in (self.svc.name, "supervisor", "recorder", "record") and r.health.t > t0
         }
         if seen:
             name = max(seen, key=seen.get)
