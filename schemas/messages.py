@@ -48,6 +48,10 @@ class MeasuredConcentration(Message):
     quality: Quality = Field(default="good", description="quality flag")
 
 
+#: a model version: the first 16 hex digits of a SHA-256 content hash
+ModelVersion = Annotated[str, StringConstraints(pattern=r"^[0-9a-f]{16}$")]
+
+
 class PredictedConcentration(Message):
     """A model prediction of concentration. Key: ``twin/<line>/blender/<location>/predicted``."""
 
@@ -58,6 +62,11 @@ class PredictedConcentration(Message):
     concentration_pct_w_w: Finite = Field(description="predicted concentration, % w/w")
     lower_pct_w_w: Finite | None = Field(default=None, description="lower prediction bound")
     upper_pct_w_w: Finite | None = Field(default=None, description="upper prediction bound")
+    model_version: ModelVersion | None = Field(
+        default=None,
+        description="content hash of the model the value was computed with "
+        "(twin_core.online.blender.model_version); absent in older recordings",
+    )
 
     @model_validator(mode="after")
     def _bounds_ordered(self) -> PredictedConcentration:
@@ -120,6 +129,11 @@ class BlenderModelInUse(Message):
     mean_residence_time_s: NonNegative = Field(description="mean of the model's E(t), s")
     rule: str = Field(
         default="", max_length=4096, description="how the model was obtained for this point"
+    )
+    model_version: ModelVersion | None = Field(
+        default=None,
+        description="content hash of the model the value was computed with "
+        "(twin_core.online.blender.model_version); absent in older recordings",
     )
 
 
@@ -242,6 +256,11 @@ class OosAlert(Message):
     peak_deviation_pct_w_w: Finite = Field(description="peak deviation from target, % w/w")
     limit_pct_w_w: NonNegative = Field(description="allowed absolute deviation, % w/w")
     cause: Text = Field(description="attributed cause, e.g. 'refill api'")
+    model_version: ModelVersion | None = Field(
+        default=None,
+        description="content hash of the model the value was computed with "
+        "(twin_core.online.blender.model_version); absent in older recordings",
+    )
 
     @model_validator(mode="after")
     def _ordered(self) -> OosAlert:
@@ -267,6 +286,11 @@ class DivertCommand(Message):
     t_end_s: NonNegative = Field(description="window end at the gate, plant time, s")
     alert_id: Ident | None = Field(default=None, description="alert that caused the command")
     reason: Text = Field(description="why")
+    model_version: ModelVersion | None = Field(
+        default=None,
+        description="content hash of the model the value was computed with "
+        "(twin_core.online.blender.model_version); absent in older recordings",
+    )
 
     @model_validator(mode="after")
     def _ordered(self) -> DivertCommand:

@@ -224,6 +224,7 @@ class BlenderService(Service):
                         model=self.core.kernel.model_name,
                         component=c,
                         concentration_pct_w_w=conc[c],
+                        model_version=self.core.kernel.version,
                     )
                 )
             self.last_published_t = t
@@ -249,6 +250,7 @@ class BlenderService(Service):
                     throughput_kg_h=point.throughput_kg_h if point is not None else None,
                     mean_residence_time_s=k.mean_residence_time_s(),
                     rule=k.rule_text(),
+                    model_version=k.version,
                 )
             )
             self.counters.inc("model_switches")

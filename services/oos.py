@@ -78,8 +78,11 @@ from twin_core.online.oos import OosCore
 log = logging.getLogger(__name__)
 
 
-def to_message(o: DiverterOutput, seq: int) -> OosAlert | DivertCommand:
-    """The wire message of a diverter output."""
+def to_message(
+    o: DiverterOutput, seq: int, model_version: str | None = None
+) -> OosAlert | DivertCommand:
+    """The wire message of a diverter output, naming the version of the blender model it was
+    decided with."""
     if o.kind == "alert":
         return OosAlert(
             t=o.t,
@@ -91,6 +94,7 @@ def to_message(o: DiverterOutput, seq: int) -> OosAlert | DivertCommand:
             peak_deviation_pct_w_w=o.peak_deviation,
             limit_pct_w_w=o.limit,
             cause=o.cause,
+            model_version=model_version,
         )
     return DivertCommand(
         t=o.t,
@@ -101,6 +105,7 @@ def to_message(o: DiverterOutput, seq: int) -> OosAlert | DivertCommand:
         t_end_s=max(o.t_end, o.t_start),
         alert_id=o.alert_id,
         reason=o.cause,
+        model_version=model_version,
     )
 
 
@@ -254,11 +259,11 @@ class OosService(Service):
         return self.core.progress(source, self.producers.complete[source])
 
     def emit(self, outs: list[DiverterOutput]) -> None:
+        version = self.core.kernel.version  # the model the outputs were decided with
         for o in outs:
             pub = self.alert_pub if o.kind == "alert" else self.divert_pub
-            sent = publish_once(
-                self.log_ids, pub, o.id, o.kind, partial(to_message, o), self.counters
-            )
+            message = partial(to_message, o, model_version=version)
+            sent = publish_once(self.log_ids, pub, o.id, o.kind, message, self.counters)
             if sent is not None:
                 self.counters.inc("alerts" if o.kind == "alert" else "divert_commands")
         if self.core.finished and not self.counters.get("stream_ended"):

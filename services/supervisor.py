@@ -413,7 +413,12 @@ class Supervisor:
     def _on_alert(self, key: str, payload: bytes) -> None:
         a = OosAlert.model_validate_json(payload)
         self.trail.see(a.t)
-        self._audit("oos", "alert", a.alert_id, f"{a.t_start_s:.1f}-{a.t_end_s:.1f} s: {a.cause}")
+        self._audit(
+            "oos",
+            "alert",
+            a.alert_id,
+            f"{a.t_start_s:.1f}-{a.t_end_s:.1f} s, model {a.model_version}: {a.cause}",
+        )
 
     def _on_divert(self, key: str, payload: bytes) -> None:
         d = DivertCommand.model_validate_json(payload)
@@ -422,7 +427,8 @@ class Supervisor:
             "oos",
             "divert_command",
             d.command_id,
-            f"{d.action} {d.t_start_s:.1f}-{d.t_end_s:.1f} s (alert {d.alert_id}): {d.reason}",
+            f"{d.action} {d.t_start_s:.1f}-{d.t_end_s:.1f} s (alert {d.alert_id}, model "
+            f"{d.model_version}): {d.reason}",
         )
 
     def _on_finding(self, key: str, payload: bytes) -> None:
@@ -448,8 +454,8 @@ class Supervisor:
             "blender",
             "model_adopted",
             m.name,
-            f"{m.kind} model from {m.applies_from_s:.1f} s ({m.reason}), mean residence time "
-            f"{m.mean_residence_time_s:.2f} s",
+            f"{m.kind} model version {m.model_version} from {m.applies_from_s:.1f} s "
+            f"({m.reason}), mean residence time {m.mean_residence_time_s:.2f} s",
         )
 
     def _on_health(self, key: str, payload: bytes) -> None:

@@ -13,6 +13,7 @@ claimed: 600 s and 2100 s).
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -58,7 +59,19 @@ def test_a_clean_record_with_one_disturbance_diverts_only_its_window(bench, tmp_
     trail = [m.payload for m in read_recording(live).messages if m.key.endswith("/audit/record")]
     verdict = verify_trail(trail, read_key(tmp_path / "state" / "audit.key"))
     assert verdict.ok, verdict.problem
-    actions = [__import__("json").loads(p)["action"] for p in trail]
+    actions = [json.loads(p)["action"] for p in trail]
     assert actions[:2] == ["trail_start", "config_loaded"] and actions[-1] == "trail_end"
     assert actions.count("service_start") == len(spec.services)
     assert "alert" in actions and "divert_command" in actions
+    # every decision names the version of the model it was made with: the blender's
+    rec = read_recording(live)
+    versions: dict[str, set] = {}
+    ends = ("/blender/outlet/predicted", "/oos/alert", "/divert/command", "/model_in_use")
+    for m in rec.messages:
+        if m.key.endswith(ends):
+            name = m.key.split("/")[-1]
+            versions.setdefault(name, set()).add(json.loads(m.payload).get("model_version"))
+    (model,) = versions["predicted"]
+    assert versions["alert"] == {model} and versions["command"] == {model}, versions
+    assert versions["model_in_use"] == {model}
+

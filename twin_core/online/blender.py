@@ -33,7 +33,9 @@ delay late.
 
 from __future__ import annotations
 
+import hashlib
 import heapq
+import json
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -45,12 +47,32 @@ from twin_core.online.inlet import FeederSample, InletStream, InletTick, tracer_
 from twin_core.plant.effects import Effect, make_effect
 from twin_core.rtd.models import model_e
 
-__all__ = ["BlenderKernel", "BlenderPredictor", "FlowMemory", "declared_kernel", "tick_grid"]
+__all__ = [
+    "BlenderKernel",
+    "BlenderPredictor",
+    "FlowMemory",
+    "declared_kernel",
+    "model_version",
+    "tick_grid",
+]
 
 
 def tick_grid(dt_s: float, length_s: float) -> np.ndarray:
     """Times k dt, 0 <= t < length_s, of an E(t) on the line's tick grid."""
     return np.arange(int(np.ceil(length_s / dt_s))) * dt_s
+
+
+def model_version(e: np.ndarray, dt_s: float, effects: Sequence[Mapping[str, Any]] = ()) -> str:
+    """The version of a blender model: the first 16 hex digits of the SHA-256 of what its
+    predictions are computed from, the E(t) on the tick grid (float64, little-endian, with
+    the tick) and the adopted effects (their dict form as sorted JSON). Equal models give equal
+    versions in every process (the blender and the diverter compute it from the same kernel);
+    any change of E(t) or of an effect gives another."""
+    h = hashlib.sha256()
+    h.update(np.float64(dt_s).tobytes())
+    h.update(np.ascontiguousarray(np.asarray(e, dtype="<f8")).tobytes())
+    h.update(json.dumps(list(effects), sort_keys=True, separators=(",", ":")).encode())
+    return h.hexdigest()[:16]
 
 
 def declared_kernel(spec: LineSpec) -> np.ndarray:
@@ -212,6 +234,16 @@ class BlenderKernel:
             f"holdup {rule.holdup_kg:g} kg at {b.rpm:g} rpm, {b.throughput_kg_h:g} kg/h; "
             f"x kappa ratio x (Q/Q_b)^{rule.beta:g}; shapes mixed linearly in rpm"
         )
+
+    @property
+    def version(self) -> str:
+        """The version of the model in use (:func:`model_version` of E(t) and the adopted
+        effects), cached until either changes."""
+        key = (id(self.e), tuple(id(x) for x in self.effects))
+        if getattr(self, "_version_key", None) != key:
+            self._version_key = key
+            self._version = model_version(self.e, self.dt, [x.to_dict() for x in self.effects])
+        return self._version
 
     def mean_residence_time_s(self) -> float:
         """Mean of the E(t) in use (its tick grid)."""

@@ -217,3 +217,21 @@ def test_flow_memory_keeps_the_last_samples_in_order_across_wraps():
         assert t.tolist() == [x[0] for x in last]
         assert q.tolist() == [x[1] for x in last]
         assert r.tolist() == [x[2] for x in last]
+
+
+def test_the_model_version_is_a_content_hash_of_the_model_in_use():
+    """The blender and the diverter compute one version for one model (the same E(t) and
+    effects), another after an adoption changes either (reference: SHA-256 of the E(t) bytes
+    and the effects' JSON, ``model_version``)."""
+    from twin_core.online.blender import BlenderKernel, model_version
+    from twin_core.online.oos import OosCore
+
+    spec = LineSpec.from_file(CONFIG)
+    k = BlenderKernel(spec)
+    v0 = k.version
+    assert v0 == OosCore(spec).kernel.version == model_version(k.e, spec.dt_s, [])
+    assert len(v0) == 16 and int(v0, 16) >= 0
+    left = k.adopt_effects([{"name": "extra_delay", "params": {"delay_s": 10.0}}])
+    assert left == [] and k.version != v0
+    k.adopt_effects([])
+    assert k.version == v0
