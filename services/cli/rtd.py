@@ -7,7 +7,10 @@ twin rtd funnel FILE [--compare FILE2] [--fit MODEL] [--limit 5] [preprocessing]
 twin rtd reproduce --out DIR [--seed 0] [--repeats 3]
 
 Preprocessing (all three): --outliers/--no-outliers, --denoise METHOD|auto|none,
---truncate SPEC|none, --baseline auto|none|VALUE, or --raw for none of it. The analyses are
+--truncate SPEC|none, --baseline auto|none|VALUE, or --raw for none of it. Files: blank rows and
+missing values are skipped with a warning naming each line (--strict refuses them); units from
+the header (``time [s]``, ``time (min)`` or the wire contract's suffixes ``time_s``,
+``concentration_pct_w_w``) or --time-unit / --conc-unit. The analyses are
 ``twin_core.quality.analysis`` (analyze, lots, funnel_analysis), the reproduction
 ``twin_core.quality.reproduce.reproduce_chapter6``; the figures ``twin_core.{rtd,quality}.plots``.
 """
@@ -44,6 +47,12 @@ def _profile_options(q: argparse.ArgumentParser, repeats: bool = False) -> None:
         "--conc-unit",
         default=None,
         help="%%, %% w/w, mg/g or fraction, if not in the header (converted to %% w/w)",
+    )
+    q.add_argument(
+        "--strict",
+        action="store_true",
+        help="refuse blank rows and missing values (NaN, empty) naming line and column "
+        "(default: skipped, each line named in a warning)",
     )
 
 
@@ -151,6 +160,7 @@ def _load(args: argparse.Namespace, path: Path | None = None):
         conc_unit=args.conc_unit,
         time_col=args.time_col,
         conc_col=args.conc_col,
+        strict=args.strict,
     )
 
 
@@ -206,7 +216,8 @@ def _analyze(args: argparse.Namespace) -> int:
         )
         args.out.mkdir(parents=True, exist_ok=True)
         p, s = res.processed, res.summary
-        cols = {"t_s": p.t, "measured_pct_w_w": p.profile.c, "processed_pct_w_w": p.y}
+        measured = p.profile.c if p.measured is None else np.where(p.measured, p.profile.c, np.nan)
+        cols = {"t_s": p.t, "measured_pct_w_w": measured, "processed_pct_w_w": p.y}
         if s is not None:
             cols["fitted_pct_w_w"] = s.fit.fitted
         _write_csv(args.out / "profile.csv", cols)

@@ -14,7 +14,7 @@ does not is refused with an error naming it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,7 +31,7 @@ from twin_core.rtd.likelihood import (
 )
 from twin_core.rtd.models import MODELS
 from twin_core.rtd.outliers import OutlierResult, hampel
-from twin_core.rtd.profiles import Moments, Profile, moments
+from twin_core.rtd.profiles import Moments, Profile, fill_gaps, moments
 from twin_core.rtd.truncation import BaselineWindows, baseline_windows, parse_spec
 
 __all__ = [
@@ -101,6 +101,8 @@ class Processed:
     denoised: DenoiseResult | None = None
     truncation: dict | None = None
     notes: list[str] = field(default_factory=list)
+    measured: NDArray[np.bool_] | None = field(default=None, repr=False)
+    """samples measured (False: missing in the file, interpolated; ``profiles.fill_gaps``)"""
 
     @property
     def t(self) -> NDArray[np.float64]:
@@ -163,10 +165,20 @@ def _uniform(t: NDArray, what: str) -> None:
 def preprocess(profile: Profile, opts: Preprocessing | None = None) -> Processed:
     """Baseline, outliers, denoising and truncation of a profile (module docstring)."""
     opts = opts or Preprocessing()
+    profile, measured = fill_gaps(profile)
     t = profile.t
     name = str(profile.meta.get("conc_column") or profile.name or "signal")
     windows = baseline_windows(t, profile.c, name)
-    notes = []
+    notes = list(profile.meta.get("warnings", []))
+    if not measured.all():
+        gone = t[~measured]
+        notes.append(
+            f"{gone.size} missing sample(s) at t = {', '.join(f'{v:g}' for v in gone[:10])}"
+            f"{' ...' if gone.size > 10 else ''} s: interpolated in the processed profile, "
+            "left out of the fit"
+        )
+    if windows.short:
+        notes.append(windows.short)
     if opts.baseline == "auto":
         base = float(np.mean(profile.c[windows.both]))
         source = "estimated: mean of the samples before and after the tracer"
@@ -193,13 +205,21 @@ def preprocess(profile: Profile, opts: Preprocessing | None = None) -> Processed
     trunc = None
     if opts.truncate:
         spec = parse_spec(opts.truncate)
+        if spec.kind == "pat" and spec.t_baseline is None and windows.short:
+            # a short record's window was judged on the raw profile's noise: the processed
+            # profile is smoothed, and its noise estimate with it
+            spec = replace(spec, t_baseline=float(t[windows.post][0]))
         y = spec.apply(t, y)
         trunc = {"kind": spec.kind, "value": spec.value, "zeroed": int(np.sum(y == 0))}
         if spec.kind == "pat":
             trunc["baseline_window_s"] = (
-                _span(t, windows.post) if spec.t_baseline is None else [spec.t_baseline, None]
+                _span(t, windows.post)
+                if windows.short or spec.t_baseline is None
+                else [spec.t_baseline, None]
             )
-    return Processed(profile, base, source, windows, cleaned, y, out, den, trunc, notes)
+    return Processed(
+        profile, base, source, windows, cleaned, y, out, den, trunc, notes, measured=measured
+    )
 
 
 @dataclass
@@ -251,8 +271,11 @@ def fit_profile(
     b = _fit_baseline(mode)
     ranking = None
     warnings = []
+    # samples missing from the file (skipped rows) stay out of the likelihood
+    profile, measured = fill_gaps(profile)
+    given = None if measured.all() else measured
     if model == "all":
-        ranking = fit_candidates(profile.t, profile.c, list(MODELS), b, None, time_limit_s)
+        ranking = fit_candidates(profile.t, profile.c, list(MODELS), b, given, time_limit_s)
         best = ranking.best
         keep = np.ones(profile.t.size, bool)
         keep[best.excluded] = False
@@ -261,7 +284,7 @@ def fit_profile(
             warnings.append(f"candidate {m} was not fitted: {why}")
     else:
         try:
-            fit = fit_raw(profile.t, profile.c, model, b, time_limit_s=time_limit_s)
+            fit = fit_raw(profile.t, profile.c, model, b, given, time_limit_s=time_limit_s)
         except FitTimeout:
             raise ValueError(
                 f"fit of {model} ran past its time limit of {time_limit_s:g} CPU s"

@@ -10,7 +10,9 @@
   half maximum after the peak, so a short record or a slow system gets its own window;
 - ``baseline_windows``: the samples before the tracer arrives and after it has left, found on
   a median-smoothed copy; a signal that does not come back to the level it started from (or
-  is still changing at the end of the record) is refused with an error naming it;
+  is still changing at the end of the record) is refused with an error naming it; a record
+  shorter than the window whose end is back at the level before the tracer within the noise
+  is complete however short (its end is the window);
 - ``two_peak_profiles``: the superposed-Gaussian construction of 6.2.2.3.1 (main peak plus
   a tail peak), for the "do tails matter?" case.
 Zeroed samples stay in the array (same length), so E = C / int C of the truncated profile is
@@ -27,6 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import median_filter
+
+from twin_core.rtd.denoise import noise_sigma
 
 __all__ = [
     "truncate_time",
@@ -94,6 +98,12 @@ BASELINE_FWHM = 5.0
 RETURN_FRACTION = 0.05
 #: fewest samples of a baseline window
 MIN_BASELINE_SAMPLES = 5
+#: a record too short for the window BASELINE_FWHM widths after the peak is complete in fact
+#: when the median of its last samples (as many as a window needs) is within RETURN_NOISE_K
+#: noise sd (``denoise.noise_sigma``, the wavelet estimate of the denoising) or
+#: RETURN_NOISE_FLOOR of the peak height (a noise-free record) of the level before the tracer
+RETURN_NOISE_K = 3.0
+RETURN_NOISE_FLOOR = 0.01
 
 
 @dataclass(frozen=True)
@@ -106,6 +116,9 @@ class BaselineWindows:
     t_peak: float
     fwhm: float
     height: float
+    short: str = ""
+    """when the post window is the tail of a record shorter than ``BASELINE_FWHM`` widths after
+    its peak, back at the baseline within the noise: what was judged, in words"""
 
     @property
     def both(self) -> NDArray[np.bool_]:
@@ -152,15 +165,43 @@ def baseline_windows(t: ArrayLike, y: ArrayLike, name: str = "signal") -> Baseli
     t_peak = float(tt[i_peak])
     post = tt >= t_peak + BASELINE_FWHM * fwhm
     need = max(MIN_BASELINE_SAMPLES, tt.size // 20)
-    if post.sum() < need:
-        raise ValueError(
-            f"{name} does not return to its baseline within the record: the baseline window "
-            f"starts {BASELINE_FWHM:g} peak widths ({fwhm:.3g} s) after the peak at "
-            f"{t_peak:.3g} s, at {t_peak + BASELINE_FWHM * fwhm:.3g} s, and the record ends at "
-            f"{tt[-1]:.3g} s ({int(post.sum())} samples, need {need}); measure longer"
-        )
     rise = int(np.argmax(ys - ref > 0.05 * height))
     pre = tt <= tt[rise] - fwhm
+    short = ""
+    if post.sum() < need:
+        # a short record: complete when its last samples are back at the level before the
+        # tracer within the noise (the start of the record when no pre window fits)
+        level = (
+            float(np.mean(yy[pre]))
+            if pre.sum() >= MIN_BASELINE_SAMPLES
+            else float(np.median(yy[: max(rise, n_edge)]))
+        )
+        last = max(need, tt.size // 10)
+        end_window = np.arange(tt.size) >= tt.size - last
+        t_end = float(tt[end_window][0])
+        tol = max(RETURN_NOISE_K * noise_sigma(yy), RETURN_NOISE_FLOOR * height)
+        at = float(np.median(yy[end_window]))
+        if t_end < t_peak + fwhm or abs(at - level) > tol:
+            seen = (
+                f"its last {last} samples (from {t_end:.3g} s) are {at - level:+.3g} from "
+                f"the level before the tracer ({level:.3g}; within the noise: {tol:.3g})"
+                if t_end >= t_peak + fwhm
+                else f"its last {last} samples start less than a peak width after the peak"
+            )
+            raise ValueError(
+                f"{name} does not return to its baseline within the record: the baseline "
+                f"window starts {BASELINE_FWHM:g} peak widths ({fwhm:.3g} s) after the peak at "
+                f"{t_peak:.3g} s, at {t_peak + BASELINE_FWHM * fwhm:.3g} s, and the record ends "
+                f"at {tt[-1]:.3g} s ({int(post.sum())} samples, need {need}); {seen}; measure "
+                "longer"
+            )
+        post = end_window
+        short = (
+            f"the record ends {(tt[-1] - t_peak) / fwhm:.1f} peak widths after the peak (short "
+            f"of {BASELINE_FWHM:g}); it is complete: its last {last} samples (from {t_end:.3g}"
+            f" s) are {at - level:+.3g} from the level before the tracer, within the noise "
+            f"({tol:.3g}: {RETURN_NOISE_K:g} sd, wavelet estimate)"
+        )
     post_y = yy[post]
     tol = max(RETURN_FRACTION * height, 4.0 * float(np.std(post_y, ddof=1)))
     if pre.sum() >= MIN_BASELINE_SAMPLES:
@@ -180,7 +221,7 @@ def baseline_windows(t: ArrayLike, y: ArrayLike, name: str = "signal") -> Baseli
                 f"{name} does not return to its baseline: it still changes by {drift:+.3g} "
                 f"over its last {tp[-1] - tp[0]:.3g} s (tolerance {tol:.3g})"
             )
-    return BaselineWindows(pre, post, t_peak, fwhm, height)
+    return BaselineWindows(pre, post, t_peak, fwhm, height, short)
 
 
 def pat_level(

@@ -66,16 +66,18 @@ def test_error_paths(call, msg):
 
 
 def test_csv_errors(tmp_path):
-    """Empty files, non-numeric rows and malformed headers are reported."""
+    """Empty files, non-numeric cells and malformed headers are reported, naming line and column."""
     empty = tmp_path / "empty.csv"
     empty.write_text("# only a comment\n")
     with pytest.raises(ValueError, match="holds no rows"):
         load_csv(empty)
     bad = tmp_path / "bad.csv"
     bad.write_text("time [s],concentration [%]\n1,2\nx,3\n")
-    with pytest.raises(ValueError, match="non-numeric or short row"):
+    with pytest.raises(ValueError, match=r"line 3, column 1 \(time \[s\]\): 'x' is not a number"):
         load_csv(bad)
     hdr = tmp_path / "hdr.csv"
     hdr.write_text("time [s],3concentration\n1,2\n")
-    with pytest.raises(ValueError, match="is not 'name \\[unit\\]'"):
+    with pytest.raises(
+        ValueError, match="line 1, column 2: header cell .* is not 'name \\[unit\\]'"
+    ):
         load_csv(hdr)
