@@ -6,12 +6,12 @@ It shares no code with the tracking model: the material is a population of parce
 their laws, not by convolution:
 
 - hopper, each tick of dt with discharge m = q dt from a hopper of mass M: the stirred share
-  alpha m takes from each lot's N_j parcels a random sample of c = alpha m N_j / M of them
-  (floor(c), plus one with probability c - floor(c): the expected count with the least
-  variance, so that 0.1 g parcels do not add a random walk of the composition that real
-  powder, 1e9 particles, does not have), then the oldest parcels leave until (1 - alpha) m
-  more has gone (plug flow); a refill adds its parcels on top; a parcel leaving in tick i
-  leaves at t_i + U dt, U ~ U(0, 1);
+  alpha m takes from each lot's N_j parcels a random sample of c = alpha m N_j / M of them,
+  whole parcels, the fraction owed carried to the next tick (error diffusion: the count never
+  strays a parcel from its expectation, so that 0.1 g parcels do not add a random walk of the
+  composition that real powder, 1e9 particles, does not have), then the oldest parcels leave
+  until (1 - alpha) m more has gone (plug flow); a refill adds its parcels on top; a parcel
+  leaving in tick i leaves at t_i + U dt, U ~ U(0, 1);
 - blender: each parcel stays a residence time drawn from the RTD law, tanks in series with
   delay: r = tau_d + Gamma(n, tau / n) (Levenspiel 1999 Eq. 14.3: the gamma distribution is the
   exit-age distribution of n equal tanks), so it leaves at t_h + r.
@@ -72,6 +72,7 @@ def simulate_parcels(
     out_t: list[np.ndarray] = []
     m = q_kg_h / 3600.0 * dt
     owed = 0.0  # plug-flow mass owed (parcels are discrete)
+    carry: dict[int, float] = {}  # stirred-share parcels owed per lot (error diffusion)
     order = sorted(range(len(refills)), key=lambda k: refills[k][0])
     nxt = 0
     for i in range(t.size):
@@ -88,8 +89,9 @@ def simulate_parcels(
             p = min(1.0, alpha * m / mass)
             for k in np.unique(hop):
                 members = np.nonzero(hop == k)[0]
-                c = p * members.size
-                take = int(c) + int(rng.random() < c - int(c))
+                c = p * members.size + carry.get(int(k), 0.0)
+                take = min(int(c), members.size)
+                carry[int(k)] = c - take
                 if take:
                     leave[rng.choice(members, size=take, replace=False)] = True
         owed += (1.0 - alpha) * m
