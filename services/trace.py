@@ -83,12 +83,16 @@ def load_trace_inputs(path: str | Path, spec: LineSpec, allow_partial: bool = Fa
     out = TraceInputs(np.zeros(0), {}, {}, [], [], [])
     updates: list[tuple[float, str, Any]] = []
     t0: float | None = None
+    by_key: dict[str, tuple[Any, str | None]] = {}  # key -> (model, id): parsed once per channel
     for m in rec.messages:
-        model = keys.model_for_key(m.key)
+        info = by_key.get(m.key)
+        if info is None:
+            model = keys.model_for_key(m.key)
+            info = by_key[m.key] = (model, keys.parse_key(m.key).id if model else None)
+        model, fid = info
         if model is None:
             continue
         if model is FeederFlow:
-            fid = keys.parse_key(m.key).id
             if fid not in flows:
                 continue
             msg = model.model_validate_json(m.payload)

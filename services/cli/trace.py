@@ -42,7 +42,12 @@ def _assays(texts: list[str] | None) -> dict[str, float]:
 def cmd_trace(args: argparse.Namespace) -> int:
     from services.trace import trace_recording
     from twin_core.tracking.assay import content_deviation
-    from twin_core.tracking.recall import composition_at, lot_intervals, recall_coverage
+    from twin_core.tracking.recall import (
+        composition_at,
+        lot_intervals,
+        recall_coverage,
+        threshold_for_coverage,
+    )
 
     if (args.lot is None) == (args.at is None):
         raise ValueError("give one of --lot LOT or --at T")
@@ -50,8 +55,14 @@ def cmd_trace(args: argparse.Namespace) -> int:
     threshold = spec.tracking.threshold if args.threshold is None else args.threshold
     if not 0 < threshold < 1:
         raise ValueError(f"--threshold must be in (0, 1), got {threshold!r}")
+    if args.coverage is not None and not 0 < args.coverage < 1:
+        raise ValueError(f"--coverage must be in (0, 1), got {args.coverage!r}")
+    if args.coverage is not None and args.threshold is not None:
+        raise ValueError("give --threshold or --coverage, not both")
     assays = _assays(args.assay)
     inputs, trace = trace_recording(args.recording, spec, args.allow_partial)
+    if args.coverage is not None and args.lot is not None:
+        threshold = threshold_for_coverage(trace, args.lot, args.coverage)
     for lot in assays:
         trace.column(lot)
     if args.at is not None:
@@ -63,15 +74,19 @@ def cmd_trace(args: argparse.Namespace) -> int:
                 trace.t_s.size - 1,
             )
         )
+        batch = next(
+            (k for k, (a, e, _) in enumerate(_bounds(spec, trace), start=1) if a <= i < e), None
+        )
         result: dict[str, Any] = {
             "t_s": args.at,
+            "batch": batch,
             "lots": [s.to_dict() for s in shares],
             "content_deviation_pct_w_w": None if dev is None else float(dev[i]),
         }
         if args.json:
             print(json.dumps(result))
             return 0
-        print(f"product leaving at {args.at:g} s:")
+        print(f"product leaving at {args.at:g} s (batch {batch}):")
         for s in shares:
             print(
                 f"  {s.lot:24s} {s.component:12s} {100 * s.fraction:8.4f} % of product "
@@ -159,6 +174,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--at", type=float, help="plant time: lot composition of the product then")
     p.add_argument(
         "--threshold", type=float, help="mass fraction of the lot in the product (default: config)"
+    )
+    p.add_argument(
+        "--coverage",
+        type=float,
+        help="instead of --threshold: the largest threshold whose intervals hold this share "
+        "of the lot by the model (e.g. 0.9995 for 99.9 %% of it, docs/traceability.md)",
     )
     p.add_argument(
         "--assay",

@@ -126,6 +126,7 @@ def test_trace_at_a_time_gives_the_composition(record, capsys):
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
     lots = {r["lot"]: r for r in out["lots"]}
+    assert out["batch"] == 1
     assert lots["api-L0000"]["component_fraction"] == pytest.approx(1.0)
     assert lots["api-L0000"]["fraction"] == pytest.approx(0.1, abs=0.01)
     assert sum(r["fraction"] for r in out["lots"]) == pytest.approx(1.0, abs=1e-5)
@@ -156,3 +157,11 @@ def test_batch_report_quotes_the_recorded_divert_window_and_alert(record, tmp_pa
     assert sum(r["diverted_kg"] for r in recs) == pytest.approx(12.0 * 61 / 3600, rel=0.02)
     assert any(r["oos_episodes"] for r in recs)
     assert all(r["decisions_recorded"] for r in recs)
+
+
+def test_trace_with_a_wanted_coverage(record, capsys):
+    cfg, plain, _, _ = record
+    argv = ["trace", str(plain), "--config", str(cfg), "--lot", "api-L0001", "--json"]
+    assert main([*argv, "--coverage", "0.9995"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["coverage"] >= 0.9995 and out["threshold"] > 1e-3
