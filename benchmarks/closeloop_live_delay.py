@@ -44,15 +44,7 @@ CASES = [
 
 def first_claims(spec: LineSpec, run, rule: str) -> list[tuple[float, list[str]]]:
     """(window end, claimed effect names) of every window that claims something."""
-    c = spec.closeloop
-    ocl = OnlineCloseLoop(
-        spec,
-        spec.dt_s,
-        interval_s=c.interval_s,
-        window_s=c.window_s,
-        min_window_s=c.min_window_s,
-        skip_s=c.skip_s,
-    )
+    ocl = OnlineCloseLoop.from_spec(spec)
     if rule == "per-window":  # the former rule: 5 % a window, 1/f periodic over the window
         ocl.alpha, ocl.noise_span_s = 0.05, 1.0
     out = []

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -43,12 +42,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.divert_window_tuning import decided_windows  # noqa: E402
 from benchmarks.machine import describe  # noqa: E402
 from schemas.line import LineSpec  # noqa: E402
 from twin_core.closeloop.attribution import out_of_spec_spans  # noqa: E402
 from twin_core.closeloop.check import check_recording  # noqa: E402
 from twin_core.closeloop.identify import IdentifyOptions  # noqa: E402
-from twin_core.online.recorded import RecordedDecisions  # noqa: E402
 from twin_core.plant.model import LineModel  # noqa: E402
 from twin_core.plant.openworld_cases import LOOKALIKE_PAIRS, Case, Setting, run_case  # noqa: E402
 
@@ -114,24 +113,6 @@ def policy_windows(report: dict[str, Any], spec: LineSpec, run: Any) -> list[tup
     return out_of_spec_spans(t[m], c[m], lim.lower_pct_w_w, lim.upper_pct_w_w)
 
 
-def baseline_windows(spec: LineSpec, messages: list) -> list[tuple[float, float]]:
-    rd = RecordedDecisions(spec)
-    outs = []
-    for k, m in messages:
-        outs += rd.push(k, m)[1]
-    outs += rd.finish()
-    cmds: dict[str, list[tuple[float, float, float]]] = {}
-    for o in outs:
-        if o.kind == "divert":
-            cmds.setdefault(o.alert_id, []).append((o.t, o.t_start, o.t_end))
-    win = []
-    for c in cmds.values():
-        c.sort()
-        for i, (_, a, b) in enumerate(c):
-            win.append((a, min(b, c[i + 1][0] if i + 1 < len(c) else math.inf)))
-    return win
-
-
 def score(
     run: Any, spec: LineSpec, windows: list[tuple[float, float]]
 ) -> tuple[float, float, float]:
@@ -165,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
                     cr = run_case(scaled_case(pair, role, scale), setting, 700000 + seed)
                     spec = line_spec(cr.run.config)
                     report = check_recording(cr.messages, cr.run.config, IdentifyOptions())
-                    base = baseline_windows(spec, cr.messages)
+                    base = decided_windows(spec, cr.messages)
                     row = {"pair": pair, "role": role, "scale": scale, "seed": seed}
                     row["status"] = report["status"]
                     row["claims"] = [e["label"] for e in report.get("effects", [])]

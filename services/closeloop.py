@@ -86,19 +86,7 @@ class CloseLoopService(Service):
 
     def __init__(self, spec: LineSpec, **kwargs: Any) -> None:
         super().__init__("closeloop", spec=spec, **kwargs)
-        c = spec.closeloop
-        self.core = OnlineCloseLoop(
-            spec,
-            spec.dt_s,
-            interval_s=c.interval_s,
-            window_s=c.window_s,
-            min_window_s=c.min_window_s,
-            skip_s=c.skip_s,
-            candidates=c.candidates,
-            max_effects=c.max_effects,
-            false_claims_per_day=c.false_claims_per_day,
-            noise_span_s=c.noise_span_s,
-        )
+        self.core = OnlineCloseLoop.from_spec(spec)
         self.log_ids = OutputLog(self.state_path / "closeloop.published")
         self.progress = ProgressReport(self.state_path / "closeloop.progress", self.progress_step_s)
         #: the worker's jobs in order: a window, a progress report (t, complete to), a flush

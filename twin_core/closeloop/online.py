@@ -148,6 +148,23 @@ class OnlineCloseLoop:
         self._next_due: int | None = None
         self.findings_: list[Finding] = []
 
+    @classmethod
+    def from_spec(cls, spec: Any, **kwargs: Any) -> OnlineCloseLoop:
+        """The live check of a ``schemas.line.LineSpec`` as its ``closeloop:`` section sets
+        it (the closeloop service's); ``kwargs`` override."""
+        c = spec.closeloop
+        args: dict[str, Any] = dict(
+            interval_s=c.interval_s,
+            window_s=c.window_s,
+            min_window_s=c.min_window_s,
+            skip_s=c.skip_s,
+            candidates=c.candidates,
+            max_effects=c.max_effects,
+            false_claims_per_day=c.false_claims_per_day,
+            noise_span_s=c.noise_span_s,
+        )
+        return cls(spec, spec.dt_s, **{**args, **kwargs})
+
     # -- input -----------------------------------------------------------------------------
     def _tick(self, t: float) -> int:
         return self.record.tick(t)

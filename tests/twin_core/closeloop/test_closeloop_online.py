@@ -152,17 +152,7 @@ def test_a_clean_line_with_one_disturbance_claims_nothing():
     cfg = LineSpec.from_file(CONFIG)
     dist = [{"feeder": "api", "t_s": 1800.0, "delta_kg_h": 0.6, "duration_s": 30.0}]
     _, msgs = simulate_messages(cfg, 3600.0, seed=0, disturbances=dist)
-    c = cfg.closeloop
-    ocl = OnlineCloseLoop(
-        cfg,
-        cfg.dt_s,
-        interval_s=c.interval_s,
-        window_s=c.window_s,
-        min_window_s=c.min_window_s,
-        skip_s=c.skip_s,
-        false_claims_per_day=c.false_claims_per_day,
-        noise_span_s=c.noise_span_s,
-    )
+    ocl = OnlineCloseLoop.from_spec(cfg)
     found = _findings_of_messages(ocl, msgs)
     assert len(found) == 11
     assert [f.effects for f in found if f.effects] == []
