@@ -816,10 +816,12 @@ class _Checker:
         s, e = r
         t = self.t
 
-        def side(n: int, where: str) -> str:
+        def side(n: int) -> str:
+            """``n`` samples off the flag's edge, in words."""
             if n == 0:
-                return f"{where} with it"
-            return f"{where} {abs(n)} sample{'s' if abs(n) > 1 else ''} {'before' if n < 0 else 'after'} it"
+                return "with it"
+            s = "s" if abs(n) > 1 else ""
+            return f"{abs(n)} sample{s} {'before' if n < 0 else 'after'} it"
 
         self.notes.append(
             DataFlag(
@@ -829,8 +831,8 @@ class _Checker:
                 float(t[b - 1]),
                 b - a,
                 f"value held at {q[a]:.4g} for {b - a} samples ({t[a]:.1f}-{t[b - 1]:.1f} s) over "
-                f"the refill flagged {t[s]:.1f}-{t[e - 1]:.1f} s: starts {side(a - s, '')}, "
-                f"ends {side(b - e, '')}; the refill's hold (skew <= {self.opt.max_skew_s:g} s), "
+                f"the refill flagged {t[s]:.1f}-{t[e - 1]:.1f} s: starts {side(a - s)}, "
+                f"ends {side(b - e)}; the refill's hold (skew <= {self.opt.max_skew_s:g} s), "
                 "not a stuck sensor",
                 "noted",
             )
