@@ -23,7 +23,7 @@ from services.trace import TraceInputs
 from twin_core.tracking import LotTrace
 from twin_core.tracking.batches import batch_summaries
 
-__all__ = ["batch_records", "write_batch_report"]
+__all__ = ["batch_records", "batches_markdown", "batches_of_recording", "write_batch_report"]
 
 
 def _divert_windows(inputs: TraceInputs) -> list[dict[str, Any]]:
@@ -244,6 +244,16 @@ def write_batch_report(
 ) -> list[Path]:
     """Write ``batch_<k>.json`` and ``batch_<k>.html`` per batch and ``batches.json`` (the
     list) into ``out``; returns the JSON paths."""
+    return [p for p, _ in _write(spec, inputs, trace, bounds, out)]
+
+
+def _write(
+    spec: LineSpec,
+    inputs: TraceInputs,
+    trace: LotTrace,
+    bounds: Sequence[tuple[int, int, bool]],
+    out: Path,
+) -> list[tuple[Path, dict[str, Any]]]:
     out.mkdir(parents=True, exist_ok=True)
     records = batch_records(spec, inputs, trace, bounds)
     paths = []
@@ -251,7 +261,7 @@ def write_batch_report(
         p = out / f"batch_{rec['batch']:03d}.json"
         p.write_text(json.dumps(rec, indent=1))
         (out / f"batch_{rec['batch']:03d}.html").write_text(_html(rec))
-        paths.append(p)
+        paths.append((p, rec))
     index = [
         {
             k: r[k]
@@ -261,3 +271,62 @@ def write_batch_report(
     ]
     (out / "batches.json").write_text(json.dumps(index, indent=1))
     return paths
+
+
+def batches_of_recording(path: str | Path, spec: LineSpec, out: Path) -> list[dict[str, Any]]:
+    """The batch records of a recording written to ``out`` (:func:`write_batch_report`), and
+    their summary for a run report: span, product and diverted mass, the lots with their mass
+    and fraction of their component (e.g. ``twin demo`` on the live twin's own recording)."""
+    from services.trace import trace_recording
+    from twin_core.tracking.batches import batch_bounds
+
+    inputs, trace = trace_recording(path, spec, allow_partial=True)
+    b = spec.batch
+    bounds = (
+        [(0, trace.t_s.size, False)]
+        if b is None
+        else batch_bounds(trace, b.by, b.size, b.start_s, b.api_component)
+    )
+    out_rows = []
+    for p, rec in _write(spec, inputs, trace, bounds, out):
+        out_rows.append(
+            {
+                "batch": rec["batch"],
+                "t_start_s": rec["t_start_s"],
+                "t_end_s": rec["t_end_s"],
+                "complete": rec["complete"],
+                "product_kg": rec["product_kg"],
+                "diverted_kg": rec["diverted_kg"],
+                "divert_windows": len(rec["divert_windows"]),
+                "lots": [
+                    {k: x[k] for k in ("lot", "component", "mass_kg", "fraction_of_component")}
+                    for x in rec["lots"]
+                    if x["fraction_of_component"] >= 1e-4
+                ],
+                "record": p.name,
+            }
+        )
+    return out_rows
+
+
+def batches_markdown(rows: list[dict[str, Any]]) -> list[str]:
+    """The batches of a run report as Markdown lines (a table: each batch with its lots)."""
+    if not rows:
+        return []
+    lines = [
+        "",
+        "## Batches (lots from the material tracking; records in `batches/`)",
+        "",
+        "| batch | plant time, s | product, kg | diverted, kg | lots (kg, share of component) |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lots = "; ".join(
+            f"{x['lot']} {x['mass_kg']:.3f} ({100 * x['fraction_of_component']:.1f} %)"
+            for x in r["lots"]
+        )
+        span = f"{r['t_start_s']:.0f} - {r['t_end_s']:.0f}{'' if r['complete'] else ' (partial)'}"
+        lines.append(
+            f"| {r['batch']} | {span} | {r['product_kg']:.3f} | {r['diverted_kg']:.3f} | {lots} |"
+        )
+    return lines

@@ -165,3 +165,24 @@ def test_trace_with_a_wanted_coverage(record, capsys):
     assert main([*argv, "--coverage", "0.9995"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["coverage"] >= 0.9995 and out["threshold"] > 1e-3
+
+
+def test_the_demo_recording_in_batches_with_their_lots(tmp_path):
+    """twin demo's report lists each batch with its lots (services.twin_demo._batches, on the
+    live twin's recording; here the bundled one: plant data only): 10 min batches by run time,
+    the excipient's refill lot entering in the third."""
+    from pathlib import Path
+
+    from services.batch_report import batches_markdown, batches_of_recording
+    from services.recording import read_recording
+    from services.twin_demo import spec_for_recording
+
+    bundled = Path(__file__).resolve().parents[2] / "recordings" / "line1_30min.mcap"
+    spec = spec_for_recording(read_recording(bundled), 7999, tmp_path / "state")
+    rows = batches_of_recording(bundled, spec, tmp_path / "batches")
+    assert [r["complete"] for r in rows][:3] == [True, True, True]
+    assert [x["lot"] for x in rows[0]["lots"]] == ["api-L0000", "excipient-L0000"]
+    assert "excipient-L0001" in [x["lot"] for x in rows[2]["lots"]]
+    assert (tmp_path / "batches" / "batch_003.html").is_file()
+    text = "\n".join(batches_markdown(rows))
+    assert "## Batches" in text and "excipient-L0001" in text
