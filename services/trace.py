@@ -3,7 +3,9 @@ records the batch report quotes.
 
 :func:`load_trace_inputs` reads a recording (``services.recording.read_recording``) into the
 tick grid of the line (``spec.dt_s``): each feeder's measured flow and hopper mass (a tick
-without a message holds the last value), the refills with their lots (``Event.lot_id``), and
+without a message holds the last value), the refills with their lots (``Event.lot_id``; a
+feeder without refill events, e.g. fed by the OPC UA bridge or ``twin import``, has its
+refills from its ``refilling`` flag, lots unnamed: ``<feeder>-L<k>``), and
 the E(t) in use per time segment: the blender's own kernel (``BlenderKernel``) with the
 updates the live blender adopts from the recording (``RtdEstimate`` with
 ``blender.adopt_rtd_estimates``, ``ModelFinding`` effects with ``blender.adopt_findings``, from
@@ -79,6 +81,7 @@ def load_trace_inputs(path: str | Path, spec: LineSpec, allow_partial: bool = Fa
     dt = spec.dt_s
     flows: dict[str, dict[int, float]] = {f: {} for f in feeders}
     hopper: dict[str, dict[int, float]] = {f: {} for f in feeders}
+    refilling: dict[str, dict[int, float]] = {f: {} for f in feeders}
     events: list[Event] = []
     out = TraceInputs(np.zeros(0), {}, {}, [], [], [])
     updates: list[tuple[float, str, Any]] = []
@@ -100,6 +103,7 @@ def load_trace_inputs(path: str | Path, spec: LineSpec, allow_partial: bool = Fa
             i = int(round((msg.t - t0) / dt))
             flows[fid][i] = msg.mass_flow_kg_h
             hopper[fid][i] = msg.hopper_mass_kg
+            refilling[fid][i] = 1.0 if msg.refilling else 0.0
         elif model in (Event, OosAlert, DivertCommand, RtdEstimate, BlenderModelInUse):
             msg = model.model_validate_json(m.payload)
             if isinstance(msg, Event):
@@ -133,6 +137,10 @@ def load_trace_inputs(path: str | Path, spec: LineSpec, allow_partial: bool = Fa
     from twin_core.tracking.assay import refills_from_events
 
     out.refills = refills_from_events([e for e in events if e.source in feeders])
+    with_events = {r.feeder for r in out.refills}
+    for f in feeders:  # no refill events (e.g. an OPC UA or historian feed): the refill flag
+        if f not in with_events:
+            out.refills += _refills_from_flag(f, out.t_s, _held(refilling[f], n) > 0.5)
     kernel = BlenderKernel(spec)
     out.kernels, out.kernel_reasons = [(float(out.t_s[0]), kernel.e.copy())], ["start"]
     last_effects: list[dict] = []
@@ -157,6 +165,17 @@ def load_trace_inputs(path: str | Path, spec: LineSpec, allow_partial: bool = Fa
     out.sha256 = sha256_file(path)
     out.path = str(path)
     return out
+
+
+def _refills_from_flag(feeder: str, t: np.ndarray, flag: np.ndarray) -> list[Refill]:
+    """Refills of a feeder from its ``refilling`` flag: each run of raised ticks, stopping at
+    the first tick after it (an unnamed lot: ``<feeder>-L<k>`` for the k-th)."""
+    edges = np.diff(np.concatenate([[0], flag.astype(np.int8), [0]]))
+    starts, stops = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    return [
+        Refill(feeder, float(t[a]), float(t[min(b, t.size - 1)]), None, None)
+        for a, b in zip(starts, stops)
+    ]
 
 
 def _held(values: dict[int, float], n: int) -> np.ndarray:

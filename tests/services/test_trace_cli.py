@@ -186,3 +186,24 @@ def test_the_demo_recording_in_batches_with_their_lots(tmp_path):
     assert (tmp_path / "batches" / "batch_003.html").is_file()
     text = "\n".join(batches_markdown(rows))
     assert "## Batches" in text and "excipient-L0001" in text
+
+
+def test_refills_from_the_refill_flag_when_no_event_names_them(record, tmp_path, capsys):
+    """A feed without refill events (an OPC UA or historian feed: only FeederFlow.refilling)
+    gives the same lots, unnamed lots numbered as the simulator names them: the recall of
+    api-L0001 within 2 s and 0.5 % of the recall from the events."""
+    from services.recording import read_recording
+
+    cfg, plain, _, _ = record
+    rec = read_recording(plain)
+    msgs = [(m.key, m.decode()) for m in rec.messages if not m.key.endswith("/event")]
+    flags = tmp_path / "flags.mcap"
+    write_messages(flags, msgs)
+    out = []
+    for path in (plain, flags):
+        argv = ["trace", str(path), "--config", str(cfg), "--lot", "api-L0001", "--json"]
+        assert main(argv) == 0
+        out.append(json.loads(capsys.readouterr().out)["intervals"])
+    (a,), (b,) = out
+    assert abs(a["t_start_s"] - b["t_start_s"]) <= 2 and abs(a["t_end_s"] - b["t_end_s"]) <= 2
+    assert b["lot_kg"] == pytest.approx(a["lot_kg"], rel=0.005)
