@@ -13,7 +13,10 @@ under "no line at f" with a spectrum locally flat over [f - W, f + W], W = NW / 
 background is estimated at each frequency from the same K eigencoefficients, so the 1/f
 (and proportional) background of the NIR noise is allowed for. The search covers f from
 max(``min_cycles`` / T, 2 W) to the Nyquist frequency less W; the smallest p-value is
-Bonferroni-corrected by the number of independent Fourier frequencies in that band.
+Bonferroni-corrected by the number of frequencies of the (zero-padded) grid searched in that
+band: the F statistics of neighbouring grid points are correlated, but their maximum exceeds
+that of the Fourier frequencies alone (with the Fourier count, the smallest p fell below 5 % on
+13-18 % of records of the simulator's noise; with the grid count 4-6 %).
 
 The line is then refined (the frequency maximising |mu(f)|), fitted by weighted least squares
 r = c + a cos(2 pi f t) + b sin(2 pi f t) on the training window (amplitude A = sqrt(a^2 + b^2)
@@ -233,7 +236,10 @@ def _fit_sinusoid(
     band = (lines.freqs_hz >= f_lo) & (lines.freqs_hz <= f_hi)
     if not band.any():
         return None, lines, band
-    n_indep = max(1.0, (f_hi - f_lo) * t_span)
+    # Bonferroni over the grid frequencies searched (the zero-padded grid is 2.8-3.8 x finer
+    # than the Fourier frequencies; counting only those, the band's smallest p fell below 5 %
+    # on 13-18 % of noise records)
+    n_indep = float(max(1, int(band.sum())))
     j = int(np.flatnonzero(band)[np.argmax(lines.f_stat[band])])
     log_p = float(stats.f.logsf(lines.f_stat[j], 2, lines.dof)) + math.log(n_indep)
     p_search = min(1.0, math.exp(min(log_p, 0.0)))

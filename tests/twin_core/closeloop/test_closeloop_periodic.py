@@ -138,13 +138,19 @@ def test_periodic_searches_keep_their_size_on_effect_free_plant_records():
     assert sum(p < opt.search_alpha for p in p_line) <= 1, p_line
 
 
-def test_residual_spectrum_test_keeps_its_size_through_the_searches_cleaning():
-    """The cumulative periodogram (Bartlett's KS test, ``diagnostics.innovation_tests``) of the
-    innovations the structure searches read (``residual_context``: Hampel-cleaned, whitened)
-    on 120 draws of the seed's NIR noise (``twin_core.plant.nir``) around a plant record's
-    prediction: at most 4 below p = 0.01 (nominal 1.2; binomial P(>= 5) = 0.007). Before, the
-    Hampel identifier had no scale floor: it replaced ~2.6 % of ordinary samples by the running
-    median, which low-passed the residual, and the test rejected ~12 % of the draws."""
+def test_residual_spectrum_and_line_search_keep_their_size_on_the_simulators_noise():
+    """120 draws of the seed's NIR noise (``twin_core.plant.nir``) around a plant record's
+    prediction, through the searches' residual (``residual_context``: Hampel-cleaned,
+    whitened):
+
+    - the cumulative periodogram (Bartlett's KS test, ``diagnostics.innovation_tests``) of the
+      innovations: at most 4 below p = 0.01 (nominal 1.2; binomial P(>= 5) = 0.007). Before,
+      the Hampel identifier had no scale floor: it replaced ~2.6 % of ordinary samples by the
+      running median, which low-passed the residual, and the test rejected ~12 %;
+    - the line search's Bonferroni p over its band: at most 11 below 0.05 (nominal 6;
+      P(>= 12) = 0.016). Before, the Bonferroni count was the Fourier frequencies of the band,
+      not the 2.8 x finer grid searched, and 13-16 % of noise records fell below 0.05.
+    """
     from dataclasses import replace
 
     from twin_core.closeloop.diagnostics import innovation_tests
@@ -154,8 +160,9 @@ def test_residual_spectrum_test_keeps_its_size_through_the_searches_cleaning():
     sp = make_split(case.data.t_s)
     pred = case.model.predict(case.data.inputs)
     noise = case.model.config.sensor.noise.model_copy(update={"baseline_offset": 0.0})
+    opt = StructureOptions(kinds=("periodic",))
     rng = np.random.default_rng(5)
-    p = []
+    p_cum, p_line = [], []
     for _ in range(120):
         y, _ = add_nir_noise(pred, noise, rng)
         ctx = residual_context(
@@ -163,8 +170,11 @@ def test_residual_spectrum_test_keeps_its_size_through_the_searches_cleaning():
         )
         both = ctx.train | ctx.held
         e = ctx.whiten(np.where(ctx.finite, ctx.resid / ctx.sigma, 0.0))[both]
-        p.append(innovation_tests(e)["p"]["cumulative_periodogram"])
-    assert np.sum(np.array(p) < 0.01) <= 4, np.sort(p)[:8]
+        p_cum.append(innovation_tests(e)["p"]["cumulative_periodogram"])
+        s, _, _ = _fit_sinusoid(ctx, ctx.resid, contiguous_span(ctx.train), opt, 1.0 - 1e-12)
+        p_line.append(s.p_search if s is not None else 1.0)
+    assert np.sum(np.array(p_cum) < 0.01) <= 4, np.sort(p_cum)[:8]
+    assert np.sum(np.array(p_line) < 0.05) <= 11, np.sort(p_line)[:15]
 
 
 @pytest.mark.parametrize("max_order", [0])
