@@ -10,6 +10,7 @@ Examples::
     twin/line1/rtd/skipped                RtdSkipped         (no id)
     twin/line1/rtd/progress               AdoptionProgress   (no id; also closeloop/progress)
     twin/line1/oos/alert                  OosAlert           (no id)
+    twin/line1/trace/outlet               LotComposition     (no id)
     twin/line1/divert/command             DivertCommand      (no id)
     twin/line1/dem/job7/request|progress|result
     twin/line1/service/recorder/health    ServiceHealth
@@ -147,6 +148,11 @@ def adoption_progress(line: str, unit: str) -> str:
     if unit not in ADOPTION_SOURCES:
         raise ValueError(f"unit must be one of {list(ADOPTION_SOURCES)}, got {unit!r}")
     return key(line, unit, "progress")
+
+
+def trace_outlet(line: str) -> str:
+    """The lot composition of the product at the blender outlet (``LotComposition``)."""
+    return key(line, "trace", "outlet")
 
 
 def oos_alert(line: str) -> str:

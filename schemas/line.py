@@ -57,6 +57,7 @@ SERVICE_NAMES = (
     "dem",
     "closeloop",
     "bridge",
+    "trace",
 )
 
 #: RTD models a declared blender may use (functions of ``twin_core.rtd.models``) and the names of
@@ -430,7 +431,16 @@ class LineSpec(LineConfig):
     )
     services: list[
         Literal[
-            "plant", "feeder", "blender", "rtd", "oos", "recorder", "dem", "closeloop", "bridge"
+            "plant",
+            "feeder",
+            "blender",
+            "rtd",
+            "oos",
+            "recorder",
+            "dem",
+            "closeloop",
+            "bridge",
+            "trace",
         ]
     ] = Field(default_factory=lambda: ["feeder", "blender", "rtd", "oos"])
     feeder_mode: Literal["replay", "simulate"] = Field(

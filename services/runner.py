@@ -83,12 +83,16 @@ def make_service(name: str, spec: LineSpec, **kwargs):
         from services.dem import DemService
 
         return DemService(spec, **kwargs)
+    if name == "trace":
+        from services.trace_service import TraceService
+
+        return TraceService(spec, **kwargs)
     if name == "bridge":
         from services.opcua_bridge import bridge_service
 
         return bridge_service(spec, **kwargs)
     raise ValueError(
-        "service must be one of blender, oos, feeder, rtd, recorder, dem, closeloop, bridge, "
+        "service must be one of blender, oos, feeder, rtd, recorder, dem, closeloop, bridge, trace, "
         f"got {name!r}"
     )
 

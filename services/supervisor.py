@@ -83,7 +83,17 @@ from services.security import (
 
 log = logging.getLogger(__name__)
 
-SUPERVISED = ("feeder", "blender", "rtd", "oos", "recorder", "dem", "closeloop", "bridge")
+SUPERVISED = (
+    "feeder",
+    "blender",
+    "rtd",
+    "oos",
+    "recorder",
+    "dem",
+    "closeloop",
+    "bridge",
+    "trace",
+)
 
 
 @dataclass
