@@ -51,6 +51,8 @@ def _divert_windows(inputs: TraceInputs) -> list[dict[str, Any]]:
                 "reason": w.text,
                 "alert_id": cmd.alert_id if cmd is not None else None,
                 "alert_cause": alert.cause if alert is not None else None,
+                # the blender model the decision was taken with (contract: absent before)
+                "model_version": getattr(cmd, "model_version", None) if cmd is not None else None,
             }
         )
     return out
@@ -119,6 +121,15 @@ def batch_records(
                     for f in inputs.findings
                     if inside(f.t_start_s, f.t_end_s)
                 ],
+                "data_quality_periods": sorted(
+                    (
+                        {"finding_id": f.finding_id, **q.model_dump(mode="json")}
+                        for f in inputs.findings
+                        for q in f.data_quality
+                        if inside(q.t_start_s, q.t_end_s)
+                    ),
+                    key=lambda q: (q["t_start_s"], q["series"]),
+                ),
                 "tracking": spec.tracking.model_dump(),
                 "recording": {"path": Path(inputs.path).name, "sha256": inputs.sha256},
                 "decisions_recorded": decisions,
@@ -202,6 +213,7 @@ def _html(rec: dict[str, Any]) -> str:
                 ("alert_id", "alert"),
                 ("alert_cause", "alert cause"),
                 ("reason", "reason"),
+                ("model_version", "model version"),
             ],
         ),
         "<h2>State of control</h2><h3>OOS episodes</h3>",
@@ -215,10 +227,28 @@ def _html(rec: dict[str, Any]) -> str:
                 ("cause", "cause"),
             ],
         ),
+        "<h3>Data-quality periods (close-loop)</h3>",
+        _table(
+            rec["data_quality_periods"],
+            [
+                ("t_start_s", "from, s"),
+                ("t_end_s", "to, s"),
+                ("series", "series"),
+                ("kind", "kind"),
+                ("action", "action"),
+                ("n_samples", "samples"),
+            ],
+        ),
         "<h3>Blender models in use</h3>",
         _table(
             rec["models_in_use"],
-            [("applies_from_s", "from, s"), ("kind", "kind"), ("name", "model"), ("reason", "why")],
+            [
+                ("applies_from_s", "from, s"),
+                ("kind", "kind"),
+                ("name", "model"),
+                ("reason", "why"),
+                ("model_version", "version"),
+            ],
         ),
         "<h3>Close-loop findings</h3>",
         _table(

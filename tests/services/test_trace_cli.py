@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from schemas import keys
+from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import DivertCommand, OosAlert
 from services.cli.main import main
@@ -70,8 +71,32 @@ def record(tmp_path_factory):
         t_end_s=2050.0,
         alert_id="a1",
         reason="predicted outlet below the limit",
+        model_version="0123456789abcdef",
     )
-    extra = [(keys.oos_alert("line1"), alert), (keys.divert_command("line1"), cmd)]
+    w = {"rmse": 0.1, "mae": 0.1, "n": 10}
+    finding = ModelFinding(
+        t=2400.0,
+        seq=0,
+        finding_id="line1.closeloop-2400000",
+        status="data_quality",
+        t_start_s=1200.0,
+        t_end_s=2400.0,
+        errors={"before": {"train": w, "heldout": w}, "after": {"train": w, "heldout": w}},
+        data_quality=[
+            {
+                "kind": "stuck",
+                "series": "nir",
+                "t_start_s": 2100.0,
+                "t_end_s": 2160.0,
+                "n_samples": 60,
+            }
+        ],
+    )
+    extra = [
+        (keys.oos_alert("line1"), alert),
+        (keys.divert_command("line1"), cmd),
+        (keys.model_finding("line1"), finding),
+    ]
     decided = tmp / "decided.mcap"
     write_messages(decided, sorted([*msgs, *extra], key=lambda km: km[1].t))
     return cfg, plain, decided, run
@@ -154,8 +179,12 @@ def test_batch_report_quotes_the_recorded_divert_window_and_alert(record, tmp_pa
     recs = [json.loads(p.read_text()) for p in sorted(tmp_path.glob("batch_0*.json"))]
     wins = [w for r in recs for w in r["divert_windows"]]
     assert [w["alert_cause"] for w in wins] == ["lot api-L0001 low assay"]
+    assert [w["model_version"] for w in wins] == ["0123456789abcdef"]
     assert sum(r["diverted_kg"] for r in recs) == pytest.approx(12.0 * 61 / 3600, rel=0.02)
     assert any(r["oos_episodes"] for r in recs)
+    dq = [q for r in recs for q in r["data_quality_periods"]]
+    assert [(q["kind"], q["series"], q["t_start_s"]) for q in dq] == [("stuck", "nir", 2100.0)]
+    assert any(r["closeloop_findings"] for r in recs)
     assert all(r["decisions_recorded"] for r in recs)
 
 
