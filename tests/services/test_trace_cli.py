@@ -236,3 +236,29 @@ def test_refills_from_the_refill_flag_when_no_event_names_them(record, tmp_path,
     (a,), (b,) = out
     assert abs(a["t_start_s"] - b["t_start_s"]) <= 2 and abs(a["t_end_s"] - b["t_end_s"]) <= 2
     assert b["lot_kg"] == pytest.approx(a["lot_kg"], rel=0.005)
+
+
+def test_the_bundled_lots_recording_answers_the_readme(capsys):
+    """README 'Which product contains lot X': recordings/line1_lots_1h.mcap with
+    services/configs/line1_lots.yaml gives the intervals and numbers the README quotes."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    argv = [
+        "trace",
+        str(root / "recordings" / "line1_lots_1h.mcap"),
+        "--config",
+        str(root / "services" / "configs" / "line1_lots.yaml"),
+        "--lot",
+        "api-L0001",
+        "--assay",
+        "api-L0001:0.9",
+        "--json",
+    ]
+    assert main(argv) == 0
+    out = json.loads(capsys.readouterr().out)
+    [iv] = out["intervals"]
+    assert (iv["t_start_s"], iv["t_end_s"], iv["batches"]) == (2415.0, 3600.0, [3, 4])
+    assert iv["lot_kg"] == pytest.approx(0.391, abs=0.001)
+    assert iv["product_kg"] == pytest.approx(3.96, abs=0.01)
+    assert out["content_deviation_pct_w_w"]["max"] == pytest.approx(-1.02, abs=0.01)

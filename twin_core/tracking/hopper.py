@@ -101,16 +101,20 @@ class Hopper:
                 out[int(layer[0])] = out.get(int(layer[0]), 0.0) + take
                 layer[1] *= keep
         rest = avail - mm
+        last = None
         while rest > 0 and self.layers:
             layer = self.layers[0]
+            last = int(layer[0])
             take = min(rest, layer[1])
-            out[int(layer[0])] = out.get(int(layer[0]), 0.0) + take
+            out[last] = out.get(last, 0.0) + take
             layer[1] -= take
             rest -= take
             if layer[1] <= 0:
                 self.layers.pop(0)
         deficit = m - avail + max(rest, 0.0)
-        if deficit > 0:
+        if 0 < deficit <= 1e-9 * m and last is not None:
+            out[last] += deficit  # rounding of the layers' sum, not an overdraw
+        elif deficit > 0:
             out[self.newest] = out.get(self.newest, 0.0) + deficit
             self.overdraw_kg += deficit
         return list(out.items())

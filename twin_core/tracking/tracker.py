@@ -468,8 +468,8 @@ def track_lots(
         if live.size == 0:
             continue
         conv = fftconvolve(seg[:, live], w[:, None], axes=0)[: n - a]
-        # FFT rounding (~1e-16 of a column's peak) is no lot: zero it
-        conv[conv < 1e-12 * conv.max(axis=0, keepdims=True)] = 0.0
+        # FFT rounding (~1e-16 of a lot's inlet times the kernel's peak) is no lot: zero it
+        conv[conv < 1e-12 * seg[:, live].max(axis=0, keepdims=True) * w.max()] = 0.0
         out[a : a + conv.shape[0], live] += conv
         if a == 0:  # the blender full at the start (MaterialTracker._prefill)
             w0 = w
