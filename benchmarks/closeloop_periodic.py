@@ -28,9 +28,10 @@ ones; ``peak_ratio``: the residual periodogram's largest ordinate (above 0.01 Hz
 median on the training window, for scale.
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/closeloop_periodic.py --mode size --seeds 200 \\
-        --duration 1500 --workers 1 --out benchmarks/out/closeloop_periodic_size.csv
+        --duration 1200 --workers 2 --out benchmarks/out/closeloop_periodic_size.csv
     OPENBLAS_NUM_THREADS=1 python benchmarks/closeloop_periodic.py --mode power --seeds 6 \\
-        --duration 1800 --out benchmarks/out/closeloop_periodic_power.csv
+        --duration 1800 --amplitudes 0.1,0.2,0.35,0.7 \\
+        --out benchmarks/out/closeloop_periodic_power.csv
 """
 
 from __future__ import annotations
