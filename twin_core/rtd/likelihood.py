@@ -667,11 +667,19 @@ def _alternatives(t: NDArray, signal: NDArray, mask: NDArray) -> dict[str, NDArr
 
 
 def _reml_information_inverse(
-    chol: NDArray, design: NDArray, corr: NDArray, sig: NDArray, noise: NoiseModel
+    chol: NDArray,
+    design: NDArray,
+    corr: NDArray,
+    sig: NDArray,
+    noise: NoiseModel,
+    bound_known: bool = True,
 ) -> NDArray[np.float64]:
     """Inverse REML information of (s_w^2, s_p^2, k^2), I_jk = tr(P dSigma_j P dSigma_k) / 2
-    with P the projection of the design; components estimated at their lower bound carry no
-    sampling variance (rows and columns zero)."""
+    with P the projection of the design. With ``bound_known`` components estimated at their
+    lower bound carry no sampling variance (rows and columns zero: the intervals); without,
+    every component keeps the variance of its information (the lack-of-fit tests: a 1/f
+    component that REML put at its bound under the spline alternative is not known to be 0,
+    and its uncertainty is the noise scale's in the smooth directions the tests look at)."""
     d_sigma = (np.eye(sig.size), corr, np.diag(sig**2))
     inv = linalg.cho_solve((chol, True), np.eye(sig.size), check_finite=False)
     vx = inv @ design
@@ -679,7 +687,7 @@ def _reml_information_inverse(
     pd = [proj @ d for d in d_sigma]
     info = 0.5 * np.array([[np.sum(a * b.T) for b in pd] for a in pd])
     share = np.array([noise.white_var, noise.pink_var, noise.prop_var * np.mean(sig**2)])
-    active = share > 1e-3 * share.sum()
+    active = share > 1e-3 * share.sum() if bound_known else np.ones(3, bool)
     out = np.zeros((3, 3))
     out[np.ix_(active, active)] = np.linalg.pinv(info[np.ix_(active, active)])
     return out
@@ -707,7 +715,7 @@ def _lack_of_fit(
     def lsolve(a: NDArray) -> NDArray:
         return linalg.solve_triangular(chol.T, a, lower=False, check_finite=False)
 
-    info_inv = _reml_information_inverse(chol, design, corr, sig, noise)
+    info_inv = _reml_information_inverse(chol, design, corr, sig, noise, bound_known=False)
     uj = _span(white(jac))
     return tuple(
         _deviation_test(name, e, uj, white(b), lsolve, d_sigma, info_inv)
@@ -833,7 +841,7 @@ def _exchange_test(
     perp = perp[:, norm > 1e-8 * norm.max()] / norm[norm > 1e-8 * norm.max()]
     lu = linalg.solve_triangular(chol.T, perp, lower=False, check_finite=False)
     d_sigma = (np.eye(sig.size), corr, np.diag(sig**2))
-    info_inv = _reml_information_inverse(chol, ext.jac(x_e)[mask], corr, sig, nm)
+    info_inv = _reml_information_inverse(chol, ext.jac(x_e)[mask], corr, sig, nm, bound_known=False)
     nu = _scale_df(linalg.solve_triangular(chol.T, _span(perp), lower=False), d_sigma, info_inv)
     p = _sup_null_pvalue(stat, perp, _scale_gradients(lu, d_sigma), info_inv)
     return DeviationTest("exchange", stat, (1, float(nu)), p)

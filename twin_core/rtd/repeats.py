@@ -14,7 +14,12 @@ independent records of the same system adds up.
   (Stouffer et al. 1949, "The American Soldier" vol. 1; Whitlock 2005, J. Evol. Biol. 18,
   1368). The tests are then joined by the same weighted Bonferroni as for one record
   (``lack_of_fit_levels``): the joint fit is adequate when no combined p is below its share
-  of alpha.
+  of alpha. Stouffer's Z is N(0, 1) only when each repeat's p-value is uniform under the
+  null: one p-value far too small flags the set alone (a pure AD record whose shape test
+  took a 1/f component at its REML bound as known, df 228, gave p = 1.5e-8 and flagged its
+  triple); the lack-of-fit tests therefore keep such a component's sampling variance in their
+  df (``likelihood._reml_information_inverse``), and the joint test's size on pure repeats is
+  measured by ``benchmarks/rtd_repeat_size.py`` (docs/rtd.md).
 - **Pooled estimates.** A parameter or derived quantity estimated in each repeat with standard
   error s_i is pooled by inverse variance with a between-repeat variance (run-to-run variation
   of a real line, which three repeats cannot rule out): w_i = 1 / s_i^2, Cochran's
