@@ -11,6 +11,7 @@ Examples::
     twin/line1/rtd/progress               AdoptionProgress   (no id; also closeloop/progress)
     twin/line1/oos/alert                  OosAlert           (no id)
     twin/line1/trace/outlet               LotComposition     (no id)
+    twin/line1/trace/batch                BatchBoundary      (no id)
     twin/line1/divert/command             DivertCommand      (no id)
     twin/line1/dem/job7/request|progress|result
     twin/line1/service/recorder/health    ServiceHealth
@@ -153,6 +154,11 @@ def adoption_progress(line: str, unit: str) -> str:
 def trace_outlet(line: str) -> str:
     """The lot composition of the product at the blender outlet (``LotComposition``)."""
     return key(line, "trace", "outlet")
+
+
+def trace_batch(line: str) -> str:
+    """Batch boundaries at the blender outlet (``BatchBoundary``)."""
+    return key(line, "trace", "batch")
 
 
 def oos_alert(line: str) -> str:

@@ -22,3 +22,16 @@ class LotComposition(Message):
     components: dict[Ident, Ident] = Field(description="lot -> its component")
     outlet_kg_h: NonNegative = Field(description="product mass flow at the outlet, kg/h")
     hopper_model: Literal["fifo", "mixed", "mixture"] = Field(description="the hoppers' law")
+
+
+class BatchBoundary(Message):
+    """A batch starts or ends at the blender outlet (the line config's ``batch:``, ICH Q13
+    section 3.1; ``twin_core.tracking.batches.BatchCounter``): batch ``batch`` starts with the
+    tick at ``t`` or ends with it. Key: ``twin/<line>/trace/batch``."""
+
+    SIGNAL = "batch"
+
+    batch: int = Field(ge=1, description="batch number, from 1")
+    boundary: Literal["start", "end"] = Field(description="the batch starts or ends at t")
+    by: Literal["product_mass", "api_mass", "run_time"] = Field(description="what cuts batches")
+    total: NonNegative = Field(description="quantity since the first batch started, kg or s")

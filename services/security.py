@@ -67,7 +67,7 @@ def published_keys(spec: LineSpec, identity: str) -> list[str]:
             keys.adoption_progress(line, "rtd"),
         ],
         "closeloop": [keys.model_finding(line), keys.adoption_progress(line, "closeloop")],
-        "trace": [keys.trace_outlet(line)],
+        "trace": [keys.trace_outlet(line), keys.trace_batch(line)],
         "dem": [
             keys.dem_jobs(line, "progress"),
             keys.dem_jobs(line, "result"),

@@ -6,7 +6,10 @@ the plant's refill events (their ``lot_id``), and the blender model updates the 
 (RTD estimates with ``blender.adopt_rtd_estimates``, close-loop effects with
 ``blender.adopt_findings``, from their ``applies_from_s``). Like the blender, a restarted trace
 service rebuilds its state from the publishers' history and publishes again only from the last
-tick it marked (``services.common.TickMark``) less ``republish_ticks``.
+tick it marked (``services.common.TickMark``) less ``republish_ticks``. With the line config's
+``batch:`` it also publishes each batch's start and end on ``twin/<line>/trace/batch``
+(``schemas.tracking.BatchBoundary``; ``twin_core.tracking.batches.BatchCounter``, the rule
+``twin batch report`` cuts a recording with).
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from schemas import keys
 from schemas.closeloop import ModelFinding
 from schemas.line import LineSpec
 from schemas.messages import Event, FeederFlow, RtdEstimate
-from schemas.tracking import LotComposition
+from schemas.tracking import BatchBoundary, LotComposition
 from services.common import TickMark, applies_from
 from services.service import Service
 from twin_core.online.trace import LiveTracker
@@ -38,6 +41,7 @@ class TraceService(Service):
     def setup(self) -> None:
         line = self.spec.name
         self.pub = self.publisher(keys.trace_outlet(line), LotComposition, history=True)
+        self.batch_pub = self.publisher(keys.trace_batch(line), BatchBoundary, history=True)
         self.history_subscribe(keys.feeder_flows(line), FeederFlow)
         self.history_subscribe(keys.events(line), Event)
         if self.spec.blender.adopt_rtd_estimates:
@@ -64,7 +68,7 @@ class TraceService(Service):
         if feeder not in self.spec.components:
             self.counters.inc("rejected_unknown")
             return
-        for t, lots, comps, outlet in self.core.push(
+        for t, lots, comps, outlet, boundaries in self.core.push(
             feeder, msg.t, msg.mass_flow_kg_h, msg.hopper_mass_kg
         ):
             if t <= self.last_published_t - self.republish_ticks * self.spec.dt_s:
@@ -79,6 +83,18 @@ class TraceService(Service):
                     hopper_model=self.spec.tracking.hopper,
                 )
             )
+            for kind, batch, total in boundaries:
+                self.batch_pub.publish(
+                    BatchBoundary(
+                        t=t,
+                        seq=2 * batch + (kind == "end"),
+                        batch=batch,
+                        boundary=kind,
+                        by=self.spec.batch.by,  # type: ignore[union-attr]
+                        total=total,
+                    )
+                )
+                self.counters.inc(f"batch_{kind}s")
             self.last_published_t = t
             self._mark.write(t)
 

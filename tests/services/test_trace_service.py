@@ -74,3 +74,33 @@ def test_trace_service_publishes_the_lot_composition_of_every_tick(tmp_path):
     for a, b in zip(again.pub.sent, sent[-len(again.pub.sent) :]):
         assert a.t == b.t and a.lots == b.lots
     assert np.isclose(sent[-1].outlet_kg_h, 12.0, rtol=0.05)
+
+
+def test_trace_service_publishes_batch_boundaries_as_twin_batch_report_cuts(tmp_path):
+    """With batch: (1 kg of product), the service publishes each batch's start and end at the
+    ticks twin batch report cuts the same record at (twin_core.tracking.batches.batch_bounds)."""
+    from twin_core.tracking.batches import batch_bounds
+
+    spec = LineSpec.model_validate(
+        {**LINE, "state_dir": str(tmp_path), "batch": {"by": "product_mass", "size": 1.0}}
+    )
+    _, msgs = simulate_messages(spec, 1200.0, 0)
+    svc = TraceService(spec, install_signal_handlers=False)
+    svc.pub, svc.batch_pub = Pub(), Pub()
+    for k, m in msgs:
+        svc.handle(k, m)
+    svc.finish()
+    write_messages(tmp_path / "rec.mcap", msgs)
+    _, trace = trace_recording(tmp_path / "rec.mcap", spec)
+    bounds = batch_bounds(trace, "product_mass", 1.0)
+    t = trace.t_s
+    want = []
+    for b, (a, e, complete) in enumerate(bounds, start=1):
+        want.append((b, "start", t[a]))
+        if complete:
+            want.append((b, "end", t[e - 1]))
+    got = [(m.batch, m.boundary, m.t) for m in svc.batch_pub.sent]
+    assert got == want
+    assert len(bounds) == 5  # 12 kg/h: 1 kg every 300 ticks, then the last tick
+    ends = [m for m in svc.batch_pub.sent if m.boundary == "end"]
+    assert [int(m.total) for m in ends] == [1, 2, 3, 4]  # the tick that reaches k kg

@@ -21,13 +21,15 @@ import numpy as np
 from schemas.line import LineSpec
 from twin_core.online.blender import BlenderKernel
 from twin_core.online.inlet import InletAligner
+from twin_core.tracking.batches import BatchCounter
 from twin_core.tracking.hopper import mixed_fraction
 from twin_core.tracking.tracker import MaterialTracker
 
 __all__ = ["LiveTracker", "TraceTick"]
 
-#: (plant time, lot -> fraction of the product, lot -> component, outlet kg/h)
-TraceTick = tuple[float, dict[str, float], dict[str, str], float]
+#: (plant time, lot -> fraction of the product, lot -> component, outlet kg/h, batch
+#: boundaries at this tick: ("start" | "end", batch, quantity since the first batch started))
+TraceTick = tuple[float, dict[str, float], dict[str, str], float, list[tuple[str, int, float]]]
 
 
 class LiveTracker:
@@ -50,6 +52,11 @@ class LiveTracker:
         #: refill events not applied yet: (t, order, kind, feeder, lot, mass)
         self._events: list[tuple[float, int, str, str, str | None, float | None]] = []
         self._n = 0
+        b = spec.batch
+        self.batches = BatchCounter(b.size, b.start_s) if b is not None else None
+        self._api = [
+            f for f, c in spec.components.items() if b is not None and c == b.api_component
+        ]
 
     def add_event(self, event: Any) -> bool:
         """A plant ``Event``; a refill of a known feeder is kept for its tick (True)."""
@@ -90,5 +97,20 @@ class LiveTracker:
                     name = self.tracker.lots[j]
                     lots[name] = min(1.0, float(y[j] / total))
                     comps[name] = self.tracker.lot_component[j]
-            out.append((tick, lots, comps, total * 3600.0))
+            out.append((tick, lots, comps, total * 3600.0, self._boundaries(tick, row, total)))
         return out
+
+    def _boundaries(
+        self, tick: float, row: dict[str, Any], outlet_kg_s: float
+    ) -> list[tuple[str, int, float]]:
+        """The batch boundaries at this tick (``BatchCounter`` on the configured quantity)."""
+        if self.batches is None:
+            return []
+        by, dt = self.spec.batch.by, self.spec.dt_s  # type: ignore[union-attr]
+        if by == "run_time":
+            q = dt
+        elif by == "product_mass":
+            q = outlet_kg_s * dt
+        else:  # api_mass: the API feeders' measured discharge
+            q = sum(max(0.0, float(row[f][0])) for f in self._api) / 3600.0 * dt
+        return [(kind, k, self.batches.total) for kind, k, _ in self.batches.push(tick, q)]

@@ -25,7 +25,7 @@ import numpy as np
 
 from twin_core.tracking.tracker import LotTrace
 
-__all__ = ["Batch", "batch_bounds", "batch_summaries", "window_mask"]
+__all__ = ["Batch", "BatchCounter", "batch_bounds", "batch_summaries", "window_mask"]
 
 
 def batch_bounds(
@@ -35,8 +35,6 @@ def batch_bounds(
     t = trace.t_s
     n = t.size
     dt = float(t[1] - t[0])
-    if not size > 0:
-        raise ValueError(f"batch.size must be > 0, got {size!r}")
     a = int(np.searchsorted(t, start_s - 1e-9))
     if a >= n:
         raise ValueError(f"batch.start_s must be within the record (<= {t[-1]:g} s), got {start_s}")
@@ -53,21 +51,64 @@ def batch_bounds(
         q = trace.fed_kg_s[:, cols].sum(axis=1) * dt
     else:
         raise ValueError(f"batch.by must be product_mass, api_mass or run_time, got {by!r}")
-    cum = np.cumsum(q[a:])  # quantity up to the end of each tick
+    counter = BatchCounter(size, float(t[a]))
     out = []
     first = a
-    k = 1
-    while first < n:
-        # the first tick whose end reaches k * size ends the batch
-        i = int(np.searchsorted(cum, k * size * (1 - 1e-12)))
-        end = a + i + 1
-        if end > n or i >= cum.size:
-            out.append((first, n, False))
-            break
-        out.append((first, end, True))
-        first = end
-        k += 1
+    for i in range(a, n):
+        for kind, _, _ in counter.push(float(t[i]), float(q[i])):
+            if kind == "start":
+                first = i
+            else:
+                out.append((first, i + 1, True))
+                first = i + 1
+    if first < n:
+        out.append((first, n, False))
     return out
+
+
+class BatchCounter:
+    """The batch boundaries of a stream of ticks, one tick at a time (the rule of the module
+    docstring; :func:`batch_bounds` over a record, the trace service live).
+
+    Args:
+        size: quantity per batch (kg or s).
+        start_s: plant time the first batch starts.
+    """
+
+    def __init__(self, size: float, start_s: float = 0.0) -> None:
+        if not size > 0:
+            raise ValueError(f"batch.size must be > 0, got {size!r}")
+        self.size = float(size)
+        self.start_s = float(start_s)
+        #: quantity so far (from start_s), the batch in progress, whether it has started
+        self.total = 0.0
+        self.batch = 1
+        self._open = False
+
+    def push(self, t: float, quantity: float) -> list[tuple[str, int, float]]:
+        """One tick's quantity; returns ``("start", k, t)`` when batch k starts with this tick
+        and ``("end", k, t)`` when it ends with it (its cumulative quantity reaches k size)."""
+        if t < self.start_s - 1e-9:
+            return []
+        out = []
+        if not self._open:
+            out.append(("start", self.batch, t))
+            self._open = True
+        self.total += quantity
+        if self.total >= self.batch * self.size * (1 - 1e-12):
+            out.append(("end", self.batch, t))
+            self.batch += 1
+            self._open = False
+        return out
+
+    def to_state(self) -> dict[str, float | int | bool]:
+        return {
+            "size": self.size,
+            "start_s": self.start_s,
+            "total": self.total,
+            "batch": self.batch,
+            "open": self._open,
+        }
 
 
 def window_mask(t_s: np.ndarray, windows: Sequence[tuple[float, float]]) -> np.ndarray:

@@ -44,7 +44,7 @@ def test_live_tracker_equals_the_offline_model_on_a_simulated_record():
     for key, msg in msgs:
         if isinstance(msg, FeederFlow):
             fid = keys.parse_key(key).id
-            for t, lots, _, _ in live.push(fid, msg.t, msg.mass_flow_kg_h, msg.hopper_mass_kg):
+            for t, lots, _, _, _ in live.push(fid, msg.t, msg.mass_flow_kg_h, msg.hopper_mass_kg):
                 got[t] = lots
         elif isinstance(msg, Event):
             live.add_event(msg)
