@@ -72,6 +72,8 @@ CASES: dict[str, tuple[str, str]] = {
     ),
     "trace": ("{missing} --lot api-L0001", "{missing} --config {bad} --at 10"),
     "batch report": ("{missing} --out {tmp}/o", "{missing} --config {bad} --out {tmp}/o"),
+    "audit verify": ("{missing} --key {missing}", "{missing} --config {bad}"),
+    "audit export": ("{missing} --out {tmp}/t.csv", "{missing} --out {nodir}/t.csv"),
 }
 
 
