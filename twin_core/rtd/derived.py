@@ -4,7 +4,9 @@ A derived quantity g(theta) (mean residence time, variance, a quantile of F, a f
 is computed from the model's E(t; theta) on a fine grid that holds its whole mass
 (:func:`model_grid`), so that the part of the tail beyond the measured record counts. Its
 interval is the Wald interval of the fit (``RawFit.interval``) for the gradient of g by
-central differences with steps of 1 % of each parameter's standard error: g +/- t_nu SE,
+central differences with steps of 1 % of each parameter's standard error (at least
+``PROFILE_GRID_CELLS`` grid cells for a parameter whose interval is the profile likelihood's: it
+moves a jump of E), g +/- t_nu SE,
 SE^2 = grad^T Cov grad, nu Satterthwaite's (Seber & Wild 1989, ch. 5.1; delta method), on the
 log scale for positive quantities.
 
@@ -19,14 +21,27 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import optimize, stats
 
 from twin_core.rtd.likelihood import RawFit
 from twin_core.rtd.models import get_model
 
-__all__ = ["Estimate", "model_grid", "model_curve", "derived", "moment_estimates", "GRID_POINTS"]
+__all__ = [
+    "Estimate",
+    "model_grid",
+    "model_curve",
+    "derived",
+    "moment_estimates",
+    "mean_residence_time",
+    "model_average",
+    "GRID_POINTS",
+]
 
 #: points of the model grid
 GRID_POINTS = 20001
+#: least step (in grid cells) of the difference quotient of a parameter whose interval is the
+#: profile likelihood's (``RawFit.profile_ci``)
+PROFILE_GRID_CELLS = 10
 #: mass the grid may leave out beyond its end
 TAIL_MASS = 1e-6
 
@@ -85,6 +100,10 @@ def derived(
     grads = np.zeros((value.size, fit.k))
     for i, v in enumerate(theta):
         h = 0.01 * se[i] if se[i] > 0 else 1e-6 * max(abs(v), 1.0)
+        if fit.names[i] in fit.profile_ci:
+            # a parameter with a profile interval moves a jump of E: a step of a few grid cells
+            # keeps the difference quotient off the grid's own steps
+            h = max(h, PROFILE_GRID_CELLS * float(grid[1] - grid[0]))
         up, down = theta.copy(), theta.copy()
         up[i], down[i] = v + h, v - h
         lo = np.asarray(get_model(fit.model).lower)[i]
@@ -118,3 +137,45 @@ def moment_estimates(fit: RawFit, grid: NDArray) -> dict[str, Estimate]:
         "mean_residence_time_s": derived(fit, grid, _mean)[0],
         "variance_s2": derived(fit, grid, _variance)[0],
     }
+
+
+def mean_residence_time(fit: RawFit, t_record: ArrayLike) -> Estimate:
+    """Mean residence time (s) of the fitted model with its interval (:func:`derived` on
+    :func:`model_grid`)."""
+    return derived(fit, model_grid(fit, t_record), _mean)[0]
+
+
+def model_average(estimates: list[Estimate], weights: ArrayLike, alpha: float = 0.05) -> Estimate:
+    """One quantity estimated under several models, averaged with their weights w_i (e.g.
+    BIC weights, Burnham & Anderson 2002, ch. 4.2-4.3):
+
+    value = sum_i w_i g_i, stderr^2 = sum_i w_i (se_i^2 + (g_i - value)^2) (the unconditional
+    variance, Burnham & Anderson 2002, Eq. 6.12), and the model-averaged tail-area interval
+    (MATA, Turek & Fletcher 2012, Comput. Stat. Data Anal. 56, 2809): the limits L, U with
+    sum_i w_i Phi((ln L - ln g_i) / s_i) = alpha / 2 and sum_i w_i Phi((ln g_i - ln U) / s_i)
+    = alpha / 2, where model i's estimate is log-normal with s_i = ln(hi_i / lo_i) / (2 z),
+    z = Phi^-1(1 - alpha / 2), so that each model alone gives its own interval [lo_i, hi_i]
+    back. The interval thus holds each model's own uncertainty and the spread between the
+    models; it is the single model's interval when one weight is 1. Estimates must be > 0."""
+    w = np.asarray(weights, dtype=float)
+    if len(estimates) == 0 or w.shape != (len(estimates),) or np.any(w < 0) or not w.sum() > 0:
+        raise ValueError(f"need one weight >= 0 per estimate, got {w!r} for {len(estimates)}")
+    w = w / w.sum()
+    g = np.array([e.value for e in estimates])
+    if np.any(g <= 0) or any(not (0 < e.ci[0] <= e.value <= e.ci[1]) for e in estimates):
+        raise ValueError("model_average needs positive estimates inside positive intervals")
+    value = float(w @ g)
+    se = np.array([e.stderr for e in estimates])
+    stderr = float(np.sqrt(w @ (se**2 + (g - value) ** 2)))
+    z = float(stats.norm.ppf(1 - alpha / 2))
+    lg = np.log(g)
+    s = np.array([max(np.log(e.ci[1] / e.ci[0]), 1e-12) for e in estimates]) / (2 * z)
+
+    def below(x: float) -> float:  # sum_i w_i P_i(G < e^x)
+        return float(w @ stats.norm.cdf((x - lg) / s))
+
+    lo_x = float(np.min(lg - 10 * s))
+    hi_x = float(np.max(lg + 10 * s))
+    low = optimize.brentq(lambda x: below(x) - alpha / 2, lo_x, hi_x)
+    high = optimize.brentq(lambda x: below(x) - (1 - alpha / 2), lo_x, hi_x)
+    return Estimate(value, stderr, (float(np.exp(low)), float(np.exp(high))))

@@ -77,7 +77,15 @@ from scipy.optimize import least_squares, minimize
 from scipy.signal import fftconvolve
 
 from twin_core.rtd.fitting import initial_guess
-from twin_core.rtd.models import ModelSpec, get_model
+from twin_core.rtd.models import (
+    DELAYS,
+    TIME_CONSTANT_MAX_RECORDS,
+    TIME_CONSTANT_MIN_STEPS,
+    TIME_CONSTANTS,
+    ModelSpec,
+    get_model,
+    record_bounds,
+)
 
 __all__ = [
     "NoiseModel",
@@ -98,6 +106,7 @@ __all__ = [
     "LACK_OF_FIT_WEIGHTS",
     "lack_of_fit_levels",
     "TIME_LIMIT_S",
+    "degenerate_interval",
 ]
 
 #: significance level of the lack-of-fit test
@@ -129,6 +138,27 @@ EXCHANGE_SCALES = tuple(float(x) for x in np.geomspace(0.05, 20.0, 25))
 #: Monte Carlo sd at p = 1 % is 0.07 %)
 EXCHANGE_DRAWS = 20_000
 EXCHANGE_SEED = 20_250_117
+
+
+#: a parameter within this share of its scale (the sampling step for times, 1 otherwise) of a
+#: bound sits on it (``RawFit.on_bound``)
+BOUND_TOL = 1e-3
+#: a parameter whose Jacobian column holds more than this share of its squared norm in one
+#: sample has a derivative taken across a jump of the model (``_spiky``)
+SPIKE_SHARE = 0.5
+#: bisections that place the end of a profile-likelihood interval between two scan points
+PROFILE_BISECTIONS = 12
+#: a parameter whose whitened Jacobian column lies this close to the span of the others is
+#: not identified to first order (``_unidentified``)
+IDENTIFY_TOL = 1e-4
+#: relative singular value below which a direction of the REML design is dropped
+REML_RANK_TOL = 1e-6
+#: profile-likelihood scan: first step (share of the sampling step for times, of max(|value|,
+#: 1e-3) otherwise), steps before they grow by PROFILE_GROWTH each, most steps per side
+PROFILE_FIRST_STEP = 0.05
+PROFILE_LINEAR_STEPS = 20
+PROFILE_GROWTH = 1.5
+PROFILE_MAX_STEPS = 60
 
 
 class FitTimeout(RuntimeError):
@@ -294,10 +324,78 @@ class RawFit:
     excluded: NDArray[np.intp] = field(repr=False)
     """samples left out of the likelihood (given outliers and those the fit flagged)"""
     alpha: float = 0.05
+    lower: NDArray[np.float64] | None = field(default=None, repr=False)
+    """bounds of the fitted parameters (``names`` order; the record's, ``models.record_bounds``)"""
+    upper: NDArray[np.float64] | None = field(default=None, repr=False)
+    step_s: float = 1.0
+    """the record's sampling step"""
+    profile_ci: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """profile-likelihood intervals of the parameters whose Wald interval is degenerate"""
+    wald_ci: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """the degenerate Wald intervals that ``profile_ci`` replaced"""
 
     @property
     def k(self) -> int:
         return len(self.names)
+
+    @property
+    def on_bound(self) -> dict[str, float]:
+        """The model's parameters that sit on a bound (within ``BOUND_TOL`` of its scale: the
+        sampling step for times, 1 otherwise), with that bound: the record does not identify
+        them (:func:`models.record_bounds`), or a fraction / volume ratio is at 0 or 1 (the
+        model reduces to a smaller one). A delay at 0 (no dead time) is a state of the system,
+        not a bound of the record, and is not listed."""
+        if self.lower is None or self.upper is None:
+            return {}
+        out = {}
+        for i, name in enumerate(get_model(self.model).params):
+            v = self.params[name]
+            unit = self.step_s if name in DELAYS or name in TIME_CONSTANTS else 1.0
+            for b in (self.lower[i], self.upper[i]):
+                if not np.isfinite(b) or abs(v - b) > BOUND_TOL * max(abs(b), unit):
+                    continue
+                if name in DELAYS and b == 0.0:
+                    continue
+                out[name] = float(b)
+        return out
+
+    @property
+    def degenerate(self) -> dict[str, tuple[float, float]]:
+        """The model's parameters whose interval (after the profile-likelihood replacement) is
+        degenerate (:func:`degenerate_interval`), with it."""
+        ci = self.ci
+        return {k: ci[k] for k in get_model(self.model).params if degenerate_interval(ci[k])}
+
+    @property
+    def identified(self) -> bool:
+        """No parameter on a bound and no degenerate interval: the fit may be selected."""
+        return not self.on_bound and not self.degenerate
+
+    def identification_notes(self) -> list[str]:
+        """Why the fit may not be selected (:meth:`selection_problems`), and which intervals
+        come from the profile likelihood, in words."""
+        out = self.selection_problems()
+        for k, (lo, hi) in self.wald_ci.items():
+            plo, phi = self.profile_ci[k]
+            out.append(
+                f"the Wald interval of {k} was degenerate ([{lo:.6g}, {hi:.6g}], width "
+                f"{hi - lo:.2g}); its interval [{plo:.6g}, {phi:.6g}] is the profile likelihood's"
+            )
+        return out
+
+    def selection_problems(self) -> list[str]:
+        """Why the fit may not be selected, in words: parameters on a bound, degenerate
+        intervals (empty when :attr:`identified`)."""
+        out = []
+        for k, b in self.on_bound.items():
+            out.append(
+                f"{k} = {self.params[k]:.4g} sits on its bound {b:.4g} (the record identifies "
+                f"time constants within {TIME_CONSTANT_MIN_STEPS:g} sampling step and "
+                f"{TIME_CONSTANT_MAX_RECORDS:g} x its length, delays up to its end)"
+            )
+        for k, (lo, hi) in self.degenerate.items():
+            out.append(f"the interval of {k} is degenerate ([{lo:.6g}, {hi:.6g}])")
+        return out
 
     @property
     def stderr(self) -> dict[str, float]:
@@ -331,10 +429,11 @@ class RawFit:
     @property
     def ci(self) -> dict[str, tuple[float, float]]:
         """Intervals of the parameters (:meth:`interval`); parameters bounded below by 0 (times,
-        Pe, n, amplitude) on the log scale."""
+        Pe, n, amplitude) on the log scale; the profile likelihood's where the Wald interval is
+        degenerate (``profile_ci``)."""
         eye = np.eye(self.k)
         return {
-            k: self.interval(self.params[k], eye[i], k in _POSITIVE)
+            k: self.profile_ci.get(k) or self.interval(self.params[k], eye[i], k in _POSITIVE)
             for i, k in enumerate(self.names)
         }
 
@@ -361,7 +460,18 @@ class RawFit:
             "success": self.success,
             "message": self.message,
             "seconds": self.seconds,
+            "identified": self.identified,
+            "on_bound": self.on_bound,
+            "profile_likelihood_ci": {k: list(v) for k, v in self.profile_ci.items()},
+            "degenerate_wald_ci": {k: list(v) for k, v in self.wald_ci.items()},
+            "identification": self.identification_notes(),
         }
+
+
+def degenerate_interval(ci: tuple[float, float]) -> bool:
+    """An interval is degenerate when it is not finite or has no width."""
+    lo, hi = ci
+    return bool(not (np.isfinite(lo) and np.isfinite(hi)) or hi <= lo)
 
 
 #: parameters with a lower bound of 0 whose intervals are built on the log scale
@@ -474,7 +584,10 @@ def estimate_noise(
     component is bounded below by 1e-8 of the residual variance; ``tol`` is the relative
     tolerance on -2 ln L (L-BFGS-B ``ftol``)."""
     rr = np.asarray(r, dtype=float)
-    xx = np.asarray(x, dtype=float)
+    # an orthonormal basis of the design's column space (the REML likelihood depends on that
+    # space only, up to a constant): a design with nearly collinear columns (a parameter the
+    # data do not identify) would make ln|X^T Sigma^-1 X| meaningless
+    xx = _span(np.asarray(x, dtype=float), REML_RANK_TOL)
     cc = np.asarray(corr, dtype=float)
     sig2 = np.asarray(signal, dtype=float) ** 2
     v = float(np.var(rr)) or 1e-12
@@ -534,9 +647,10 @@ class _Mean:
             je = self.spec.jac(self.t, *theta)
         else:
             je = np.empty((self.t.size, theta.size))
+            upper = self.bounds()[1]
             for i, v in enumerate(theta):
                 h = 1e-6 * max(abs(v), 1e-3)
-                if v + h > self.spec.upper[i]:  # backward difference at an upper bound
+                if v + h > upper[i]:  # backward difference at an upper bound
                     h = -h
                 tp = theta.copy()
                 tp[i] = v + h
@@ -547,8 +661,11 @@ class _Mean:
         return np.hstack(cols)
 
     def bounds(self) -> tuple[NDArray, NDArray]:
-        lo = list(self.spec.lower) + [0.0] + ([-np.inf] if self.baseline is None else [])
-        hi = list(self.spec.upper) + [np.inf] + ([np.inf] if self.baseline is None else [])
+        """The model's parameters within what the record identifies (``models.record_bounds``),
+        amplitude >= 0, baseline free."""
+        plo, phi = record_bounds(self.spec, self.t)
+        lo = list(plo) + [0.0] + ([-np.inf] if self.baseline is None else [])
+        hi = list(phi) + [np.inf] + ([np.inf] if self.baseline is None else [])
         return np.array(lo, float), np.array(hi, float)
 
 
@@ -847,10 +964,38 @@ def _exchange_test(
     return DeviationTest("exchange", stat, (1, float(nu)), p)
 
 
-def _span(a: NDArray) -> NDArray[np.float64]:
-    """Orthonormal basis of the column space of ``a`` (SVD, relative tolerance 1e-8)."""
+def _span(a: NDArray, rtol: float = 1e-8) -> NDArray[np.float64]:
+    """Orthonormal basis of the column space of ``a`` (SVD, relative tolerance ``rtol``)."""
     u, sv, _ = np.linalg.svd(a, full_matrices=False)
-    return u[:, sv > 1e-8 * sv[0]] if sv.size and sv[0] > 0 else u[:, :0]
+    return u[:, sv > rtol * sv[0]] if sv.size and sv[0] > 0 else u[:, :0]
+
+
+def _spiky(jac: NDArray, count: int) -> list[int]:
+    """Indices among the first ``count`` columns of the Jacobian ``jac`` that hold more than
+    ``SPIKE_SHARE`` of their squared norm in a single sample: the derivative was taken across
+    a jump of the model (a delay before a CSTR or a bypass moves a sample from 0 to the jump's
+    height), so the Wald interval claims a precision no record has."""
+    sq = jac[:, :count] ** 2
+    total = sq.sum(axis=0)
+    return [i for i in range(count) if total[i] > 0 and sq[:, i].max() > SPIKE_SHARE * total[i]]
+
+
+def _unidentified(jw: NDArray, count: int) -> list[int]:
+    """Indices among the first ``count`` columns of the whitened Jacobian ``jw`` that lie in
+    the span of the other columns to within ``IDENTIFY_TOL`` (relative norm of the part
+    orthogonal to them): the likelihood does not tell that parameter from the others to
+    first order (e.g. a plug-flow delay before a CSTR shifts the exponential exactly as its
+    amplitude scales it; only the jump's position carries the delay), so its Wald interval
+    means nothing."""
+    out = []
+    for i in range(count):
+        col = jw[:, i]
+        norm = float(np.linalg.norm(col))
+        others = _span(np.delete(jw, i, axis=1))
+        rest = col - others @ (others.T @ col)
+        if not norm > 0 or float(np.linalg.norm(rest)) < IDENTIFY_TOL * norm:
+            out.append(i)
+    return out
 
 
 def _criteria(chi2: float, logdet: float, n: int, p: int) -> tuple[float, float, float]:
@@ -917,6 +1062,84 @@ def _conditional_outliers(chol: NDArray, r: NDArray, z_crit: float) -> NDArray[n
     pr = linalg.cho_solve((chol, True), r, check_finite=False)
     z = pr / np.sqrt(np.diag(inv_low))
     return np.nonzero(np.abs(z) > z_crit)[0].astype(np.intp)
+
+
+def _profile_interval(
+    mean: _Mean,
+    y: NDArray,
+    mask: NDArray,
+    chol: NDArray,
+    x: NDArray,
+    i: int,
+    level: float,
+    step_s: float,
+    deadline: float,
+) -> tuple[float, float]:
+    """Profile-likelihood interval of parameter ``i``: {v : chi2_p(v) - min chi2_p <= q},
+    q = chi2_1 quantile at ``level``, chi2_p(v) the GLS chi2 under the fixed covariance L L^T
+    (``chol``) with x_i = v and every other parameter refitted (Venzon & Moolgavkar 1988;
+    Seber & Wild 1989, ch. 5.4). Scanned outwards from x_i, in steps of
+    ``PROFILE_FIRST_STEP`` (of the sampling step for a time) that grow by ``PROFILE_GROWTH``
+    after ``PROFILE_LINEAR_STEPS``, each fit starting from its neighbour's; the end is placed
+    between the last point inside and the first outside by ``PROFILE_BISECTIONS`` bisections
+    (a model with a jump at its delay has a profile with steps at the sample times), or is
+    the bound reached."""
+    ym = y[mask]
+    lo_b, hi_b = mean.bounds()
+    free = np.arange(x.size) != i
+    q = float(stats.chi2.ppf(level, 1))
+    name = mean.names[i]
+    unit = step_s if name in DELAYS or name in TIME_CONSTANTS else max(abs(x[i]), 1e-3)
+
+    def full(v: NDArray, value: float) -> NDArray:
+        z = np.empty_like(x)
+        z[free] = v
+        z[i] = value
+        return z
+
+    def chi2_at(value: float, start: NDArray) -> tuple[float, NDArray]:
+        def resid(v: NDArray) -> NDArray:
+            return linalg.solve_triangular(
+                chol, mean(full(v, value))[mask] - ym, lower=True, check_finite=False
+            )
+
+        def jac(v: NDArray) -> NDArray:
+            return linalg.solve_triangular(
+                chol, mean.jac(full(v, value))[mask][:, free], lower=True, check_finite=False
+            )
+
+        res = _least_squares(resid, jac, start, (lo_b[free], hi_b[free]), deadline)
+        return 2.0 * float(res.cost), res.x
+
+    c0, _ = chi2_at(x[i], x[free])
+    ends = []
+    for sign in (-1.0, 1.0):
+        start, last_in = x[free], float(x[i])
+        step, offset, end = PROFILE_FIRST_STEP * unit, 0.0, None
+        for k in range(PROFILE_MAX_STEPS):
+            if k >= PROFILE_LINEAR_STEPS:
+                step *= PROFILE_GROWTH
+            offset += step
+            value = float(np.clip(x[i] + sign * offset, lo_b[i], hi_b[i]))
+            c, nxt = chi2_at(value, start)
+            c0 = min(c0, c)
+            if c - c0 > q:
+                inside, outside = last_in, value
+                for _ in range(PROFILE_BISECTIONS):
+                    mid = 0.5 * (inside + outside)
+                    cm, xm = chi2_at(mid, start)
+                    if cm - c0 > q:
+                        outside = mid
+                    else:
+                        inside, start = mid, xm
+                end = 0.5 * (inside + outside)
+                break
+            last_in, start = value, nxt
+            if value in (lo_b[i], hi_b[i]):
+                end = value
+                break
+        ends.append(last_in if end is None else end)
+    return float(min(ends)), float(max(ends))
 
 
 def _check_uniform(t: NDArray) -> None:
@@ -1069,7 +1292,7 @@ def fit_raw(
             lof = (*(d for d in lof if d.name != "tail"), exchange)
         except (FitTimeout, ValueError, np.linalg.LinAlgError, FloatingPointError):
             pass  # the extension could not be fitted: the linearised tail test stays
-    return RawFit(
+    out = RawFit(
         model=spec.name,
         names=mean.names,
         params={k: float(v) for k, v in zip(mean.names, x)},
@@ -1088,7 +1311,55 @@ def fit_raw(
         dof=dof,
         excluded=np.nonzero(~mask)[0].astype(np.intp),
         alpha=alpha,
+        lower=bounds[0],
+        upper=bounds[1],
+        step_s=float(np.median(np.diff(tt))),
     )
+    # 4. a Wald interval from a derivative across a jump of the model (``_spiky``), degenerate,
+    # or of a parameter not identified to first order gets the profile likelihood's interval, and its row and
+    # column of the covariance are rescaled to it (standard error = half its width / z;
+    # correlations kept) for derived quantities; not for a fit on a bound (not selectable)
+    if not out.on_bound:
+        _profile_degenerate(out, mean, yy, mask, chol, jw, deadline + time_limit_s)
+    return out
+
+
+def _profile_degenerate(
+    fit: RawFit,
+    mean: _Mean,
+    y: NDArray,
+    mask: NDArray,
+    chol: NDArray,
+    jw: NDArray,
+    deadline: float,
+) -> None:
+    """Step 4 of :func:`fit_raw` (its comment), in place on ``fit``."""
+    level = 1 - fit.alpha / 2
+    z = float(stats.norm.ppf(level))
+    x = np.array([fit.params[k] for k in fit.names])
+    count = len(mean.spec.params)
+    flat = set(_unidentified(jw, count)) | set(_spiky(mean.jac(x)[mask], count))
+    cov = fit.cov
+    for i, name in enumerate(mean.spec.params):
+        se = float(np.sqrt(max(cov[i, i], 0.0)))
+        ci = (x[i] - z * se, x[i] + z * se)
+        if i not in flat and not degenerate_interval(ci):
+            continue
+        try:
+            pci = _profile_interval(mean, y, mask, chol, x, i, 1 - fit.alpha, fit.step_s, deadline)
+        except (FitTimeout, ValueError, np.linalg.LinAlgError, FloatingPointError):
+            continue
+        fit.wald_ci[name], fit.profile_ci[name] = ci, pci
+        target = (pci[1] - pci[0]) / (2.0 * z)
+        if se > 0:
+            scale = np.ones(cov.shape[0])
+            scale[i] = target / se
+            cov = cov * np.outer(scale, scale)
+        else:
+            cov = cov.copy()
+            cov[i, :] = cov[:, i] = 0.0
+            cov[i, i] = target**2
+    fit.cov = cov
 
 
 @dataclass
@@ -1100,12 +1371,39 @@ class Ranking:
     fits: list[RawFit]
     weights: list[float]
     failed: dict[str, str]
+    excluded: dict[str, str] = field(default_factory=dict)
+    """candidates fitted but not selectable, with the reason: a parameter on a bound of what
+    the record identifies, a degenerate interval, a mean residence time outside the record"""
+    mrt: dict = field(default_factory=dict)
+    """each fitted candidate's mean residence time (``derived.Estimate``), by model"""
 
     @property
     def best(self) -> RawFit:
+        """The candidate of lowest BIC that is not ``excluded``."""
         if not self.fits:
             raise ValueError(f"no candidate model could be fitted: {self.failed!r}")
-        return self.fits[0]
+        for f in self.fits:
+            if f.model not in self.excluded:
+                return f
+        raise ValueError(
+            "no candidate model is identified by the record: "
+            + "; ".join(f"{k}: {v}" for k, v in self.excluded.items())
+        )
+
+    def averaged(self) -> tuple[list[RawFit], list[float]]:
+        """The candidates that may be averaged (selectable and adequate) with their BIC
+        weights renormalised among them (Burnham & Anderson 2002, ch. 4.2)."""
+        keep = [
+            (f, w)
+            for f, w in zip(self.fits, self.weights)
+            if f.model not in self.excluded and f.adequate
+        ]
+        if not keep:
+            return [], []
+        total = sum(w for _, w in keep)
+        if not total > 0:
+            return [keep[0][0]], [1.0]
+        return [f for f, _ in keep], [w / total for _, w in keep]
 
     def as_dict(self) -> dict:
         b0 = self.fits[0].bic if self.fits else 0.0
@@ -1123,10 +1421,18 @@ class Ranking:
                     "adequate": f.adequate,
                     "lack_of_fit_p": f.lack_of_fit.p_value,
                     "seconds": f.seconds,
+                    "selectable": f.model not in self.excluded,
+                    "not_selected_because": self.excluded.get(f.model),
+                    "mean_residence_time_s": (
+                        self.mrt[f.model].as_dict() if f.model in self.mrt else None
+                    ),
                 }
                 for f, w in zip(self.fits, self.weights)
             ],
             "failed": self.failed,
+            "selection_rule": "lowest BIC among the candidates whose parameters are inside what "
+            "the record identifies (none on a bound), whose intervals are not degenerate and "
+            "whose mean residence time and its interval lie within the record",
         }
 
 
@@ -1184,4 +1490,35 @@ def fit_candidates(
         weights = list(w / w.sum())
     else:
         weights = []
-    return Ranking(fits, [float(x) for x in weights], failed)
+    excluded, mrt = _identification(fits, np.asarray(t, dtype=float))
+    return Ranking(fits, [float(x) for x in weights], failed, excluded, mrt)
+
+
+def _identification(fits: list[RawFit], t: NDArray) -> tuple[dict[str, str], dict]:
+    """(reasons a candidate may not be selected, by model; each candidate's mean residence
+    time): a parameter on a bound or a degenerate interval (``RawFit.selection_problems``),
+    a mean residence time or its interval outside the record [t_0, t_end]
+    (``derived.mean_residence_time``)."""
+    from twin_core.rtd.derived import mean_residence_time  # derived builds on this module
+
+    excluded, mrt = {}, {}
+    for f in fits:
+        why = f.selection_problems()
+        try:
+            m = mean_residence_time(f, t)
+            mrt[f.model] = m
+            if not t[0] < m.value < t[-1]:
+                why.append(
+                    f"its mean residence time {m.value:.4g} s lies outside the record "
+                    f"[{t[0]:.4g}, {t[-1]:.4g}] s"
+                )
+            elif not (t[0] <= m.ci[0] and m.ci[1] <= t[-1]):
+                why.append(
+                    f"the interval of its mean residence time [{m.ci[0]:.4g}, {m.ci[1]:.4g}] s "
+                    f"reaches outside the record [{t[0]:.4g}, {t[-1]:.4g}] s"
+                )
+        except (ValueError, FloatingPointError) as exc:
+            why.append(f"its mean residence time could not be computed: {exc}")
+        if why:
+            excluded[f.model] = "; ".join(why)
+    return excluded, mrt

@@ -50,6 +50,11 @@ __all__ = [
     "E_FUNCTIONS",
     "get_model",
     "model_e",
+    "DELAYS",
+    "TIME_CONSTANTS",
+    "TIME_CONSTANT_MAX_RECORDS",
+    "TIME_CONSTANT_MIN_STEPS",
+    "record_bounds",
 ]
 
 
@@ -593,6 +598,44 @@ MODELS: dict[str, ModelSpec] = {
         _g_tisb,
     ),
 }
+
+#: parameters that place the response in time (a plug-flow delay, the Gaussian's centre)
+DELAYS = frozenset({"tau_d", "tau_pfr", "mu"})
+#: parameters that are time constants or time scales of the response
+TIME_CONSTANTS = frozenset({"tau", "tau_cstr", "sigma", "tau_e", "b", "tau_x", "tau_bypass"})
+#: a time constant is identified by a record of length T sampled at dt between
+#: TIME_CONSTANT_MIN_STEPS dt and TIME_CONSTANT_MAX_RECORDS T
+TIME_CONSTANT_MAX_RECORDS = 2.0
+TIME_CONSTANT_MIN_STEPS = 0.5
+
+
+def record_bounds(spec: ModelSpec, t: ArrayLike) -> tuple[NDArray, NDArray]:
+    """(lower, upper) of ``spec``'s parameters as far as a record on the times ``t`` (length
+    T = t_end - t_0, step dt) can identify them: a time constant within
+    [``TIME_CONSTANT_MIN_STEPS`` dt, ``TIME_CONSTANT_MAX_RECORDS`` T] (below half a step it
+    shapes a single sample; a decay slower than twice the record length is not seen to end,
+    and a profile is accepted only once it is back at its baseline), a delay within
+    [t_0 - T, t_end] (no later than the record's end); dimensionless parameters (Pe, n, c,
+    fractions, volume ratios) keep the model's own bounds. Each bound is the tighter of the
+    model's and the record's."""
+    tt = np.asarray(t, dtype=float)
+    if tt.ndim != 1 or tt.size < 2:
+        raise ValueError(f"t must be 1-D with >= 2 samples, got shape {tt.shape}")
+    length = float(tt[-1] - tt[0])
+    step = float(np.median(np.diff(tt)))
+    if not (length > 0 and step > 0):
+        raise ValueError(f"t must increase, got {tt[0]!r} .. {tt[-1]!r}")
+    lo = np.array(spec.lower, dtype=float)
+    hi = np.array(spec.upper, dtype=float)
+    for i, name in enumerate(spec.params):
+        if name in TIME_CONSTANTS:
+            lo[i] = max(lo[i], TIME_CONSTANT_MIN_STEPS * step)
+            hi[i] = min(hi[i], TIME_CONSTANT_MAX_RECORDS * length)
+        elif name in DELAYS:
+            lo[i] = max(lo[i], float(tt[0]) - length)
+            hi[i] = min(hi[i], float(tt[-1]))
+    return lo, hi
+
 
 _ALIASES = {
     "axial_dispersion_open": "ad_open",

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twin_core.rtd.denoise import DenoiseResult, denoise
-from twin_core.rtd.derived import Estimate, model_grid, moment_estimates
+from twin_core.rtd.derived import Estimate, model_average, model_grid, moment_estimates
 from twin_core.rtd.likelihood import (
     TIME_LIMIT_S,
     FitTimeout,
@@ -232,6 +232,9 @@ class FitSummary:
     moments: dict[str, Estimate]
     grid: NDArray[np.float64] = field(repr=False)
     warnings: list[str] = field(default_factory=list)
+    averaging: dict | None = None
+    """with several candidates that fit: the models, their weights and mean residence times
+    whose average is ``moments["mean_residence_time_s"]`` (``derived.model_average``)"""
 
     def as_dict(self) -> dict:
         out = {
@@ -241,6 +244,8 @@ class FitSummary:
         }
         if self.ranking is not None:
             out["model_selection"] = self.ranking.as_dict()
+        if self.averaging is not None:
+            out["model_averaging"] = self.averaging
         return out
 
 
@@ -260,13 +265,21 @@ def inadequacy_warning(fit: RawFit) -> str:
 
 def fit_profile(
     profile: Profile,
-    model: str = "ad_open",
+    model: str | list[str] = "ad_open",
     baseline: str | float = "auto",
     time_limit_s: float = TIME_LIMIT_S,
 ) -> FitSummary:
-    """Fit ``model`` (a name, or ``all`` to rank every registered model by BIC and keep the
-    best) to the raw profile; derived moments with intervals; warnings for an inadequate fit
-    and for candidates that failed."""
+    """Fit ``model`` (a name; ``all`` or a list of names ranks those candidates by BIC) to the
+    raw profile; derived moments with intervals; warnings for an inadequate fit, for a model
+    the record does not identify, for candidates that failed and for those of lower BIC that
+    were not selected.
+
+    Of ranked candidates the one of lowest BIC is selected among those the record identifies
+    (``Ranking.best``: no parameter on a bound of ``models.record_bounds``, no degenerate
+    interval, mean residence time within the record). When two or more candidates fit
+    (selectable and adequate), the mean residence time is their BIC-weighted average with an
+    interval that holds the spread between them (``derived.model_average``); the selected
+    model's own is kept under ``averaging``."""
     mode = parse_baseline(baseline)
     b = _fit_baseline(mode)
     ranking = None
@@ -274,22 +287,73 @@ def fit_profile(
     # samples missing from the file (skipped rows) stay out of the likelihood
     profile, measured = fill_gaps(profile)
     given = None if measured.all() else measured
-    if model == "all":
-        ranking = fit_candidates(profile.t, profile.c, list(MODELS), b, given, time_limit_s)
-        best = ranking.best
-        keep = np.ones(profile.t.size, bool)
-        keep[best.excluded] = False
-        fit = fit_raw(profile.t, profile.c, best.model, b, keep, time_limit_s=time_limit_s)
-        for m, why in ranking.failed.items():
-            warnings.append(f"candidate {m} was not fitted: {why}")
-    else:
+    t = profile.t
+    if isinstance(model, str) and model != "all":
         try:
-            fit = fit_raw(profile.t, profile.c, model, b, given, time_limit_s=time_limit_s)
+            fit = fit_raw(t, profile.c, model, b, given, time_limit_s=time_limit_s)
         except FitTimeout:
             raise ValueError(
                 f"fit of {model} ran past its time limit of {time_limit_s:g} CPU s"
             ) from None
+        warnings += [f"model {fit.model}: {w}" for w in fit.selection_problems()]
+    else:
+        names = list(MODELS) if model == "all" else list(model)
+        ranking = fit_candidates(t, profile.c, names, b, given, time_limit_s)
+        best = ranking.best
+        keep = np.ones(t.size, bool)
+        keep[best.excluded] = False
+        fit = fit_raw(t, profile.c, best.model, b, keep, time_limit_s=time_limit_s)
+        for f in ranking.fits:
+            if f.model == best.model:
+                break
+            warnings.append(
+                f"candidate {f.model} (BIC {best.bic - f.bic:.3g} below the selected "
+                f"{best.model}) was not selected: {ranking.excluded[f.model]}"
+            )
+        for m, why in ranking.failed.items():
+            warnings.append(f"candidate {m} was not fitted: {why}")
     if not fit.adequate:
         warnings.insert(0, inadequacy_warning(fit))
-    grid = model_grid(fit, profile.t)
-    return FitSummary(fit, ranking, moment_estimates(fit, grid), grid, warnings)
+    grid = model_grid(fit, t)
+    moments = moment_estimates(fit, grid)
+    mrt = moments["mean_residence_time_s"].value
+    if not t[0] < mrt < t[-1]:
+        warnings.insert(
+            0,
+            f"model {fit.model}: its mean residence time {mrt:.4g} s lies outside the record "
+            f"[{t[0]:.4g}, {t[-1]:.4g}] s, which does not identify it",
+        )
+    averaging = None
+    if ranking is not None:
+        averaging = _average_mrt(ranking, fit, moments)
+        if averaging is not None:
+            moments["mean_residence_time_s"] = averaging.pop("estimate")
+    return FitSummary(fit, ranking, moments, grid, warnings, averaging)
+
+
+def _average_mrt(ranking: Ranking, fit: RawFit, moments: dict[str, Estimate]) -> dict | None:
+    """The mean residence time averaged over the candidates that fit (selectable and adequate,
+    BIC weights renormalised among them; ``derived.model_average``), the selected model's own
+    estimate standing for its candidate. None when fewer than two candidates fit."""
+    fits, weights = ranking.averaged()
+    if len(fits) < 2:
+        return None
+    est = [
+        moments["mean_residence_time_s"] if f.model == fit.model else ranking.mrt[f.model]
+        for f in fits
+    ]
+    try:
+        avg = model_average(est, weights, fit.alpha)
+    except ValueError:
+        return None
+    return {
+        "estimate": avg,
+        "method": "BIC weights of the candidates that fit (selectable, adequate); "
+        "unconditional variance (Burnham & Anderson 2002, Eq. 6.12); model-averaged "
+        "tail-area interval (Turek & Fletcher 2012)",
+        "models": [
+            {"model": f.model, "weight": w, "mean_residence_time_s": e.as_dict()}
+            for f, w, e in zip(fits, weights, est)
+        ],
+        "selected_model_mean_residence_time_s": moments["mean_residence_time_s"].as_dict(),
+    }
