@@ -112,6 +112,11 @@ def derived(
             hh = h
         else:
             hh = 2 * h
+        if up[i] > get_model(fit.model).upper[i]:  # one-sided below an upper bound (a fraction)
+            up[i] = v
+            hh -= h
+        if hh <= 0:
+            continue
         f_up = np.atleast_1d(np.asarray(fn(grid, model_curve(fit, grid, up)), dtype=float))
         f_dn = np.atleast_1d(np.asarray(fn(grid, model_curve(fit, grid, down)), dtype=float))
         grads[:, i] = (f_up - f_dn) / hh

@@ -1316,9 +1316,10 @@ def fit_raw(
         step_s=float(np.median(np.diff(tt))),
     )
     # 4. a Wald interval from a derivative across a jump of the model (``_spiky``), degenerate,
-    # or of a parameter not identified to first order gets the profile likelihood's interval, and its row and
-    # column of the covariance are rescaled to it (standard error = half its width / z;
-    # correlations kept) for derived quantities; not for a fit on a bound (not selectable)
+    # or of a parameter not identified to first order gets the profile likelihood's interval;
+    # in the covariance that parameter gets the variance (half its width / z)^2 and no
+    # covariance with the others (its Jacobian column tells nothing of them), for derived
+    # quantities; not for a fit on a bound (it is not selected)
     if not out.on_bound:
         _profile_degenerate(out, mean, yy, mask, chol, jw, deadline + time_limit_s)
     return out
@@ -1350,15 +1351,9 @@ def _profile_degenerate(
         except (FitTimeout, ValueError, np.linalg.LinAlgError, FloatingPointError):
             continue
         fit.wald_ci[name], fit.profile_ci[name] = ci, pci
-        target = (pci[1] - pci[0]) / (2.0 * z)
-        if se > 0:
-            scale = np.ones(cov.shape[0])
-            scale[i] = target / se
-            cov = cov * np.outer(scale, scale)
-        else:
-            cov = cov.copy()
-            cov[i, :] = cov[:, i] = 0.0
-            cov[i, i] = target**2
+        cov = cov.copy()
+        cov[i, :] = cov[:, i] = 0.0
+        cov[i, i] = ((pci[1] - pci[0]) / (2.0 * z)) ** 2
     fit.cov = cov
 
 

@@ -302,7 +302,9 @@ def fit_profile(
         best = ranking.best
         keep = np.ones(t.size, bool)
         keep[best.excluded] = False
-        fit = fit_raw(t, profile.c, best.model, b, keep, time_limit_s=time_limit_s)
+        # its own noise estimate, from the ranking's estimate (the same optimum)
+        x0 = [best.params[k] for k in best.names]
+        fit = fit_raw(t, profile.c, best.model, b, keep, time_limit_s=time_limit_s, x0=x0)
         for f in ranking.fits:
             if f.model == best.model:
                 break
