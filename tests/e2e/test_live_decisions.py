@@ -74,4 +74,3 @@ def test_a_clean_record_with_one_disturbance_diverts_only_its_window(bench, tmp_
     (model,) = versions["predicted"]
     assert versions["alert"] == {model} and versions["command"] == {model}, versions
     assert versions["model_in_use"] == {model}
-
