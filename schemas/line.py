@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from pydantic import Field, model_validator
 
@@ -46,8 +46,8 @@ __all__ = [
     "SERVICE_NAMES",
 ]
 
-#: the services ``twin up`` knows how to start
-SERVICE_NAMES = (
+#: a service ``twin up`` knows how to start
+ServiceName = Literal[
     "plant",
     "feeder",
     "blender",
@@ -58,7 +58,8 @@ SERVICE_NAMES = (
     "closeloop",
     "bridge",
     "trace",
-)
+]
+SERVICE_NAMES: tuple[str, ...] = get_args(ServiceName)
 
 #: RTD models a declared blender may use (functions of ``twin_core.rtd.models``) and the names of
 #: their parameters, in call order
@@ -429,20 +430,7 @@ class LineSpec(LineConfig):
     bus: BusConfig = Field(
         default_factory=lambda: BusConfig(mode="router", listen=["tcp/127.0.0.1:7447"], connect=[])
     )
-    services: list[
-        Literal[
-            "plant",
-            "feeder",
-            "blender",
-            "rtd",
-            "oos",
-            "recorder",
-            "dem",
-            "closeloop",
-            "bridge",
-            "trace",
-        ]
-    ] = Field(default_factory=lambda: ["feeder", "blender", "rtd", "oos"])
+    services: list[ServiceName] = Field(default_factory=lambda: ["feeder", "blender", "rtd", "oos"])
     feeder_mode: Literal["replay", "simulate"] = Field(
         "replay",
         description="replay: pass recorded load-cell flows through; simulate: run the LIW model",

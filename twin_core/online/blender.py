@@ -235,13 +235,17 @@ class BlenderKernel:
             f"x kappa ratio x (Q/Q_b)^{rule.beta:g}; shapes mixed linearly in rpm"
         )
 
+    def __setattr__(self, name: str, value: Any) -> None:
+        # E(t) or the adopted effects replaced: the version is computed again when asked
+        if name in ("e", "effects"):
+            object.__setattr__(self, "_version", None)
+        object.__setattr__(self, name, value)
+
     @property
     def version(self) -> str:
         """The version of the model in use (:func:`model_version` of E(t) and the adopted
-        effects), cached until either changes."""
-        key = (id(self.e), tuple(id(x) for x in self.effects))
-        if getattr(self, "_version_key", None) != key:
-            self._version_key = key
+        effects), computed once per E(t) and effects assigned."""
+        if self._version is None:
             self._version = model_version(self.e, self.dt, [x.to_dict() for x in self.effects])
         return self._version
 
