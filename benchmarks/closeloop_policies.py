@@ -42,6 +42,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import benchmarks.live_decisions as ld  # noqa: E402
 from benchmarks.divert_window_tuning import decided_windows  # noqa: E402
 from benchmarks.machine import describe  # noqa: E402
 from schemas.line import LineSpec  # noqa: E402
@@ -117,14 +118,8 @@ def score(
     run: Any, spec: LineSpec, windows: list[tuple[float, float]]
 ) -> tuple[float, float, float]:
     """(good product diverted, OOS product accepted, OOS product) kg."""
-    t = run.t_s
-    c = run.outlet_true_pct_w_w[spec.sensor.component]
-    lim = next(s for s in spec.spec if s.component == spec.sensor.component)
-    oos = (c < lim.lower_pct_w_w) | (c > lim.upper_pct_w_w)
-    mass = sum(f.delivered_kg_h for f in run.feeders.values()) / 3600.0 * float(t[1] - t[0])
-    dv = np.zeros(t.size, dtype=bool)
-    for a, b in windows:
-        dv |= (t >= a) & (t <= b)
+    mass, oos = ld.truth(run, spec)
+    dv = ld.union_mask(windows, run.t_s)
     return float(mass[dv & ~oos].sum()), float(mass[oos & ~dv].sum()), float(mass[oos].sum())
 
 

@@ -15,7 +15,6 @@ chosen on) and ``--seeds 4:8`` (held out).
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
@@ -44,16 +43,11 @@ def decided_windows(spec: LineSpec, msgs: list) -> list[tuple[float, float]]:
     for k, m in msgs:
         outs += rd.push(k, m)[1]
     outs += rd.finish()
-    cmds: dict[str, list[tuple[float, float, float]]] = {}
+    cmds: dict[str, list[tuple[float, float, float, str]]] = {}
     for o in outs:
         if o.kind == "divert":
-            cmds.setdefault(o.alert_id, []).append((o.t, o.t_start, o.t_end))
-    win = []
-    for c in cmds.values():
-        c.sort()
-        for i, (_, a, b) in enumerate(c):
-            win.append((a, min(b, c[i + 1][0] if i + 1 < len(c) else math.inf)))
-    return win
+            cmds.setdefault(o.alert_id, []).append((o.t, o.t_start, o.t_end, "divert"))
+    return [w for own in ld.gate_windows(cmds).values() for w in own]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -77,10 +71,8 @@ def main(argv: list[str] | None = None) -> int:
         fd = mi = oo = pr = 0.0
         t0 = time.perf_counter()
         for run, msgs, _ in recs:
-            c = run.outlet_true_pct_w_w["api"]
-            oos = (c < 8.5) | (c > 11.5)
-            mass = sum(f.delivered_kg_h for f in run.feeders.values()) / 3600.0
-            dv = ld._union(decided_windows(spec, msgs), run.t_s)
+            mass, oos = ld.truth(run, spec)
+            dv = ld.union_mask(decided_windows(spec, msgs), run.t_s)
             fd += mass[dv & ~oos].sum()
             mi += mass[oos & ~dv].sum()
             oo += mass[oos].sum()

@@ -53,6 +53,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.machine import describe as machine_line  # noqa: E402
 from schemas.line import LineSpec  # noqa: E402
 from services.recording import read_recording, write_messages  # noqa: E402
+from twin_core.closeloop.quality import true_runs  # noqa: E402
 from twin_core.plant.model import rtd_kernel  # noqa: E402
 
 LINE = ROOT / "services" / "configs" / "line1.yaml"
@@ -194,16 +195,42 @@ def _wait_quiet(state: Path, quiet_s: float = 15.0, limit_s: float = 600.0) -> N
 
 
 # ------------------------------------------------------------------------------ scoring
-def _union(windows: list[tuple[float, float]], t: np.ndarray) -> np.ndarray:
+def union_mask(windows: list[tuple[float, float]], t: np.ndarray) -> np.ndarray:
+    """The samples of ``t`` inside any of the windows [a, b]."""
     m = np.zeros(t.size, dtype=bool)
     for a, b in windows:
         m |= (t >= a) & (t <= b)
     return m
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
+def gate_windows(
+    commands: dict[str, list[tuple[float, float, float, str]]],
+) -> dict[str, list[tuple[float, float]]]:
+    """What the gate diverted or the twin rejected, per alert: each ``divert`` command's
+    window (decided at t: (t, start, end, action)) until the alert's next command replaces
+    it (a window decided after its product passed the gate rejects that product all the same)."""
+    out = {}
+    for aid, cmds in commands.items():
+        cmds = sorted(cmds)
+        own = [
+            (a, min(b, cmds[i + 1][0] if i + 1 < len(cmds) else math.inf))
+            for i, (_, a, b, action) in enumerate(cmds)
+            if action == "divert"
+        ]
+        if own:
+            out[aid] = own
+    return out
+
+
+def truth(run: Any, spec: LineSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(product mass per tick, kg; truly out-of-specification ticks) of a simulated run: the
+    true outlet content of the sensor's component against its limits."""
+    t = run.t_s
+    comp = spec.sensor.component
+    lim = next(s for s in spec.spec if s.component == comp)
+    c_true = run.outlet_true_pct_w_w[comp]
+    mass = sum(f.delivered_kg_h for f in run.feeders.values()) / 3600.0 * float(t[1] - t[0])
+    return mass, (c_true < lim.lower_pct_w_w) | (c_true > lim.upper_pct_w_w)
 
 
 def lot_window_s(spec: LineSpec) -> tuple[float, float]:
@@ -221,11 +248,7 @@ def score(run: Any, info: dict[str, Any], live: Path, spec: LineSpec) -> dict[st
     """The record's decisions against its truth (module docstring)."""
     t = run.t_s
     dt = float(t[1] - t[0])
-    comp = spec.sensor.component
-    lim = next(s for s in spec.spec if s.component == comp)
-    c_true = run.outlet_true_pct_w_w[comp]
-    mass = sum(f.delivered_kg_h for f in run.feeders.values()) / 3600.0 * dt  # kg per tick
-    oos = (c_true < lim.lower_pct_w_w) | (c_true > lim.upper_pct_w_w)
+    mass, oos = truth(run, spec)
     rec = read_recording(live)
     commands: dict[str, list[tuple[float, float, float, str]]] = {}
     alerts, findings = [], []
@@ -239,28 +262,19 @@ def score(run: Any, info: dict[str, Any], live: Path, spec: LineSpec) -> dict[st
             alerts.append(json.loads(m.payload))
         elif m.key.endswith("/closeloop/finding"):
             findings.append(json.loads(m.payload))
-    # what the gate diverted or the twin rejected: each command's window until the alert's
-    # next command replaces it (a window decided after its product passed the gate rejects
-    # that product all the same)
-    windows: list[tuple[float, float]] = []
-    diverts: dict[str, tuple[float, float, float]] = {}
-    for aid, cmds in commands.items():
-        cmds.sort()
-        own = [
-            (a, min(b, cmds[i + 1][0] if i + 1 < len(cmds) else math.inf))
-            for i, (_, a, b, action) in enumerate(cmds)
-            if action == "divert"
-        ]
-        windows += own
-        if own:
-            diverts[aid] = (min(w[0] for w in own), max(w[1] for w in own), cmds[0][0])
-    diverted = _union(windows, t)
+    per_alert = gate_windows(commands)
+    windows = [w for own in per_alert.values() for w in own]
+    diverts = {
+        aid: (min(w[0] for w in own), max(w[1] for w in own), min(c[0] for c in commands[aid]))
+        for aid, own in per_alert.items()
+    }
+    diverted = union_mask(windows, t)
     t_lo, t_hi = lot_window_s(spec)
-    allowed = _union([(a + t_lo, b + t_hi) for a, b in info["disturbances"]], t)
-    for a, b in _runs(oos):
+    allowed = union_mask([(a + t_lo, b + t_hi) for a, b in info["disturbances"]], t)
+    for a, b in true_runs(oos):
         allowed[max(0, a - 5) : b + 5] = True
     lat = []
-    for a, _ in _runs(oos):
+    for a, _ in true_runs(oos):
         ts = t[a]
         hits = [td for wa, wb, td in diverts.values() if wa <= ts + dt and wb >= ts - dt]
         lat.append(min(hits) - ts if hits else math.inf)
